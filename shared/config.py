@@ -1,0 +1,49 @@
+"""Settings in one place: defaults, overridden by MIDVIEW_* environment variables or a .env file."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="MIDVIEW_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Field(Path("runs"), description="Working folder of the CLI and the embedded service")
+    log_level: str = Field("INFO", description="Logging level: DEBUG, INFO, WARNING, ERROR")
+    log_json: bool = Field(False, description="Log one JSON object per line instead of text")
+    device: str = Field("auto", description="Torch device for learned features: auto, cpu or cuda")
+    num_threads: int = Field(0, description="Torch/numba threads; 0 uses every core")
+
+    # state and storage (shared/db, shared/storage)
+    database_url: str = Field("", description="SQLAlchemy URL; empty uses sqlite:///DATA_DIR/midview.db")
+    api_key_pepper: str = Field("", description="HMAC secret for API key hashes; empty: plain SHA-256")
+    storage: Literal["local", "s3"] = Field("local", description="Object storage backend: local or s3")
+    storage_root: Path | None = Field(None, description="Local storage folder; default DATA_DIR/storage")
+    s3_endpoint_url: str | None = Field(None, description="S3 endpoint (SeaweedFS, MinIO); None for AWS")
+    s3_public_endpoint_url: str | None = Field(
+        None, description="Endpoint clients use for presigned URLs, when it differs from s3_endpoint_url"
+    )
+    s3_bucket: str = Field("midview", description="S3 bucket holding every object")
+    s3_region: str = Field("us-east-1", description="S3 region (also used to sign requests)")
+    s3_access_key: str | None = Field(None, description="S3 access key; None uses the boto3 default chain")
+    s3_secret_key: str | None = Field(None, description="S3 secret key")
+    s3_presign_expiry_s: int = Field(3600, ge=1, le=7 * 24 * 3600, description="Lifetime of presigned URLs")
+
+    @model_validator(mode="after")
+    def _derive_paths(self) -> Settings:
+        """Fill the defaults that live under data_dir."""
+        if not self.database_url:
+            self.database_url = f"sqlite:///{(self.data_dir / 'midview.db').as_posix()}"
+        if self.storage_root is None:
+            self.storage_root = self.data_dir / "storage"
+        return self
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

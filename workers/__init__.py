@@ -1,0 +1,1 @@
+"""Celery workers running the pipeline stages of the midview service."""
