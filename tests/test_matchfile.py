@@ -18,7 +18,9 @@ def test_round_trip_and_orientation(tmp_path):
         mf.add_keypoints("aerial/A.jpg", k0, (100, 80))
         mf.add_keypoints("ground/G.jpg", k1, (64, 48))
         v = mf.view_index("render/V1")
-        mf.add_pair(PairMatches("ground/G.jpg", "aerial/A.jpg", m[:, ::-1], np.ones(3), np.array([1, 0, 1]), [v] * 3))
+        mf.add_pair(
+            PairMatches("ground/G.jpg", "aerial/A.jpg", m[:, ::-1], np.ones(3), np.array([1, 0, 1]), [v] * 3)
+        )
     with MatchFile(path) as mf:
         assert mf.method == "test"
         assert mf.image_names() == ["aerial/A.jpg", "ground/G.jpg"]

@@ -77,7 +77,9 @@ def test_pos_csv_round_trip(tmp_path, crs, attitude):
     assert [r.name for r in back] == [r.name for r in recs]
     f = LocalFrame(55.7047, 13.1910, 70.0)
     for a, b in zip(recs, back, strict=True):
-        np.testing.assert_allclose(f.from_wgs84(b.lat, b.lon, b.h), f.from_wgs84(a.lat, a.lon, a.h), atol=1e-3)
+        np.testing.assert_allclose(
+            f.from_wgs84(b.lat, b.lon, b.h), f.from_wgs84(a.lat, a.lon, a.h), atol=1e-3
+        )
         if a.R_world_from_cam is None:
             assert b.R_world_from_cam is None
         else:
@@ -95,7 +97,10 @@ HEADER = "name,lat,lon,h,yaw,pitch,roll\n"
         ("aerial/a.jpg,95.0,13.1,50,0,0,0\n", "column lat: 95.0 is outside"),
         ("aerial/a.jpg,55.7,13.1,nan,0,0,0\n", "column h: 'nan' is not finite"),
         ("aerial/a.jpg,55.7,13.1,50,0,0\n", "6 fields, the header has 7"),
-        ("aerial/a.jpg,55.7,13.1,50,0,0,0\naerial/a.jpg,55.7,13.1,50,0,0,0\n", "duplicate name 'aerial/a.jpg'"),
+        (
+            "aerial/a.jpg,55.7,13.1,50,0,0,0\naerial/a.jpg,55.7,13.1,50,0,0,0\n",
+            "duplicate name 'aerial/a.jpg'",
+        ),
         (",55.7,13.1,50,0,0,0\n", "empty image name"),
         ("aerial/a.jpg,55.7,13.1,50,999,0,0\n", "column yaw: 999.0 is outside"),
     ],
