@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .attitude import matrix_to_opk, matrix_to_ypr, opk_to_matrix, ypr_to_matrix
-from .frames import CRSError, WGS84_3D, from_wgs84, parse_crs, to_wgs84
+from .frames import WGS84_3D, CRSError, from_wgs84, parse_crs, to_wgs84
 from .records import PosError, PosRecord
 
 GEO_COLS = ("lat", "lon", "h")

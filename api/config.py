@@ -1,0 +1,44 @@
+"""Settings of the API process: shared.config.Settings plus what only the API reads (MIDVIEW_* as well)."""
+
+from __future__ import annotations
+
+from pydantic import Field, field_validator
+
+from shared.config import Settings
+from shared.db.crud import API_KEY_PREFIX
+
+MB = 1024 * 1024
+
+
+class ApiSettings(Settings):
+    dispatcher: str = Field(
+        "embedded", description="How jobs reach the workers: embedded (in-process thread) or celery"
+    )
+    bootstrap_api_key: str | None = Field(
+        None,
+        description="An API key (mv_...) created at startup for bootstrap_tenant if missing; "
+        "for the embedded single-user setup",
+    )
+    bootstrap_tenant: str = Field("default", description="Tenant owning bootstrap_api_key")
+    migrate_on_startup: bool = Field(False, description="Apply database migrations when the API starts")
+
+    max_upload_bytes: int = Field(512 * MB, ge=1, description="Largest image accepted, in bytes")
+    max_files_per_request: int = Field(1000, ge=1, description="Most files in one upload request")
+    max_pos_bytes: int = Field(64 * MB, ge=1, description="Largest POS file accepted, in bytes")
+    upload_part_size: int = Field(
+        8 * MB, ge=5 * MB, description="Part size of multipart uploads (S3 needs >= 5 MiB)"
+    )
+    upload_tmp_dir: str | None = Field(None, description="Folder for upload temp files; default: system")
+    cache_dir: str | None = Field(None, description="Cache of downloaded artifacts; default DATA_DIR/cache")
+    events_poll_s: float = Field(0.5, gt=0, le=10, description="Job event stream: database poll period")
+    events_heartbeat_s: float = Field(15.0, gt=0, description="Job event stream: keep-alive comment period")
+    readyz_timeout_s: float = Field(5.0, gt=0, description="Readiness probe: time allowed to each check")
+
+    @field_validator("bootstrap_api_key")
+    @classmethod
+    def _key_shape(cls, value: str | None) -> str | None:
+        if value is not None and (not value.startswith(API_KEY_PREFIX) or len(value) < 20):
+            raise ValueError(
+                f"bootstrap_api_key must start with {API_KEY_PREFIX!r} and have >= 20 characters"
+            )
+        return value or None

@@ -1,0 +1,121 @@
+"""FastAPI dependencies: settings, database session, storage, dispatcher, and the authenticated tenant.
+
+Everything comes from `app.state` (set by api.main.create_app), so that several apps with different
+settings can live in one process (tests). Tests replace `get_dispatcher` with
+`app.dependency_overrides`.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from typing import Annotated
+
+import sqlalchemy as sa
+from fastapi import Depends, HTTPException, Path, Request, status
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import Session
+
+from api.config import ApiSettings
+from shared.db import crud
+from shared.db.models import ApiKey, Job, Project, Tenant
+from shared.dispatch import Dispatcher, DispatcherError
+from shared.dispatch import get_dispatcher as make_dispatcher
+from shared.storage import Storage
+
+_bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer mv_...`")
+_dispatcher_lock = threading.Lock()
+
+
+def get_settings(request: Request) -> ApiSettings:
+    return request.app.state.settings
+
+
+def get_db(request: Request) -> Iterator[Session]:
+    """One session per request; routes commit what they keep, anything else is rolled back."""
+    with request.app.state.sessionmaker() as session:
+        yield session
+
+
+def get_storage(request: Request) -> Storage:
+    return request.app.state.storage
+
+
+def get_dispatcher(request: Request) -> Dispatcher:
+    """The app's dispatcher, created on first use; 503 if it cannot be (e.g. Celery not installed)."""
+    state = request.app.state
+    if state.dispatcher is None:
+        with _dispatcher_lock:
+            if state.dispatcher is None:
+                try:
+                    state.dispatcher = make_dispatcher(state.settings)
+                except DispatcherError as e:
+                    raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"job dispatch: {e}") from e
+    return state.dispatcher
+
+
+SettingsDep = Annotated[ApiSettings, Depends(get_settings)]
+SessionDep = Annotated[Session, Depends(get_db)]
+StorageDep = Annotated[Storage, Depends(get_storage)]
+DispatcherDep = Annotated[Dispatcher, Depends(get_dispatcher)]
+
+
+def _unauthorized(reason: str, error: str = "invalid_token") -> HTTPException:
+    challenge = f'Bearer realm="midview", error="{error}", error_description="{reason}"'
+    return HTTPException(status.HTTP_401_UNAUTHORIZED, reason, headers={"WWW-Authenticate": challenge})
+
+
+def get_current_tenant(
+    request: Request,
+    session: SessionDep,
+    settings: SettingsDep,
+    _credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> Tenant:
+    """The tenant of the bearer API key; 401 with the reason when missing, malformed, unknown or revoked."""
+    header = request.headers.get("authorization")
+    if not header:
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            "missing Authorization header (expected 'Bearer <API key>')",
+            headers={"WWW-Authenticate": 'Bearer realm="midview"'},
+        )
+    scheme, _, token = header.partition(" ")
+    token = token.strip()
+    if scheme.lower() != "bearer" or not token:
+        raise _unauthorized("malformed Authorization header (expected 'Bearer <API key>')", "invalid_request")
+    key_hash = crud.hash_api_key(token, settings.api_key_pepper)
+    key = session.scalar(sa.select(ApiKey).where(ApiKey.key_hash == key_hash))
+    if key is None:
+        raise _unauthorized("invalid API key")
+    if key.revoked_at is not None:
+        raise _unauthorized("API key revoked")
+    request.state.tenant_id = key.tenant_id  # for the request log
+    request.state.api_key_prefix = key.prefix
+    return key.tenant
+
+
+TenantDep = Annotated[Tenant, Depends(get_current_tenant)]
+
+
+def get_project(
+    project_id: Annotated[str, Path(description="Project id")], tenant: TenantDep, session: SessionDep
+) -> Project:
+    """The tenant's project; 404 when absent or another tenant's."""
+    project = crud.get_project(session, project_id, tenant.id)
+    if project is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"project {project_id} not found")
+    return project
+
+
+def get_job(
+    job_id: Annotated[str, Path(description="Job id")], tenant: TenantDep, session: SessionDep
+) -> Job:
+    """The tenant's job; 404 when absent or another tenant's."""
+    job = crud.get_job(session, job_id, tenant.id)
+    if job is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
+    return job
+
+
+ProjectDep = Annotated[Project, Depends(get_project)]
+JobDep = Annotated[Job, Depends(get_job)]

@@ -1,0 +1,61 @@
+"""Errors as JSON `{"detail": ...}`: crud, POS and storage exceptions mapped to HTTP statuses."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request, status
+from fastapi.responses import JSONResponse
+
+from services.pos import PosError
+from shared.db.crud import ConflictError, InvalidTransitionError, NotFoundError
+from shared.storage import InvalidKeyError, StorageError, StorageKeyError
+
+log = logging.getLogger("midview.api")
+
+
+def error(status_code: int, detail: object, headers: dict[str, str] | None = None) -> JSONResponse:
+    return JSONResponse({"detail": detail}, status_code=status_code, headers=headers)
+
+
+def pos_error_detail(e: PosError, message: str = "invalid POS") -> dict[str, object]:
+    """The 422 body of a POS error: a message and one entry per bad row."""
+    return {"message": message, "errors": e.errors}
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Map library exceptions that escape a route to statuses (HTTPException keeps its own)."""
+
+    @app.exception_handler(NotFoundError)
+    async def _not_found(_: Request, e: NotFoundError) -> JSONResponse:
+        return error(status.HTTP_404_NOT_FOUND, str(e))
+
+    @app.exception_handler(ConflictError)
+    async def _conflict(_: Request, e: ConflictError) -> JSONResponse:
+        return error(status.HTTP_409_CONFLICT, str(e))
+
+    @app.exception_handler(InvalidTransitionError)
+    async def _transition(_: Request, e: InvalidTransitionError) -> JSONResponse:
+        return error(status.HTTP_409_CONFLICT, str(e))
+
+    @app.exception_handler(PosError)
+    async def _pos(_: Request, e: PosError) -> JSONResponse:
+        return error(status.HTTP_422_UNPROCESSABLE_CONTENT, pos_error_detail(e))
+
+    @app.exception_handler(InvalidKeyError)
+    async def _key(_: Request, e: InvalidKeyError) -> JSONResponse:
+        return error(status.HTTP_422_UNPROCESSABLE_CONTENT, str(e))
+
+    @app.exception_handler(StorageKeyError)
+    async def _missing_object(_: Request, e: StorageKeyError) -> JSONResponse:
+        return error(status.HTTP_404_NOT_FOUND, f"stored object missing: {e}")
+
+    @app.exception_handler(StorageError)
+    async def _storage(request: Request, e: StorageError) -> JSONResponse:
+        log.error("storage error on %s %s: %s", request.method, request.url.path, e)
+        return error(status.HTTP_502_BAD_GATEWAY, f"storage error: {e}")
+
+    @app.exception_handler(Exception)
+    async def _internal(request: Request, e: Exception) -> JSONResponse:
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return error(status.HTTP_500_INTERNAL_SERVER_ERROR, "internal server error")

@@ -1,0 +1,80 @@
+"""The FastAPI application factory.
+
+Run it with `uvicorn --factory api.main:create_app` (settings from MIDVIEW_* variables), or build an
+app on given settings with `create_app(settings)` (tests, the embedded service).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from starlette.concurrency import run_in_threadpool
+
+from api.bootstrap import ensure_api_key
+from api.config import ApiSettings
+from api.errors import install_error_handlers
+from api.middleware import RequestLogMiddleware
+from api.routes import ROUTERS
+from shared.config import Settings
+from shared.db.session import make_engine, make_sessionmaker, upgrade_database
+from shared.storage import get_storage
+
+log = logging.getLogger("midview.api")
+
+DESCRIPTION = """Registers aerial (UAV) images with ground images through rendered intermediate views.
+
+Authenticate with an API key: `Authorization: Bearer mv_...`. Image names are `SET/FILE`
+(`aerial/A0001.jpg`, `ground/G0001.jpg`); errors are JSON `{"detail": ...}`.
+"""
+
+
+def _startup(app: FastAPI) -> None:
+    settings: ApiSettings = app.state.settings
+    if settings.migrate_on_startup:
+        upgrade_database(settings.database_url)
+    if settings.bootstrap_api_key:
+        with app.state.sessionmaker() as session:
+            ensure_api_key(
+                session, settings.bootstrap_tenant, settings.bootstrap_api_key, settings.api_key_pepper
+            )
+            session.commit()
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    await run_in_threadpool(_startup, app)
+    try:
+        yield
+    finally:
+        close = getattr(app.state.dispatcher, "close", None)
+        if callable(close):
+            close()
+        app.state.engine.dispose()
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """An app on its own engine, storage and (lazily created) dispatcher, all kept in app.state."""
+    if settings is None:
+        settings = ApiSettings()
+    elif not isinstance(settings, ApiSettings):
+        settings = ApiSettings(**settings.model_dump())
+    app = FastAPI(
+        title="midview",
+        version="0.1.0",
+        description=DESCRIPTION,
+        lifespan=_lifespan,
+    )
+    app.state.settings = settings
+    app.state.engine = make_engine(settings.database_url)
+    app.state.sessionmaker = make_sessionmaker(app.state.engine)
+    app.state.storage = get_storage(settings)
+    app.state.dispatcher = None  # created on first use (api.deps.get_dispatcher)
+    app.add_middleware(RequestLogMiddleware)
+    install_error_handlers(app)
+    for router in ROUTERS:
+        app.include_router(router)
+    log.debug("app created: database %s, storage %r", app.state.engine.url, app.state.storage)
+    return app

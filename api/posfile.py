@@ -1,0 +1,81 @@
+"""POS uploads: pick the format, parse with services.pos, and check the rows against the project's images."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import PurePath
+from typing import Literal
+
+from services.pos import PosError, PosRecord, parse_pos_csv
+
+PosFormat = Literal["auto", "csv", "geotxt", "json"]
+
+# format -> (module, function) of a text parser `parse(text, source) -> list[PosRecord]`
+_PARSERS: dict[str, tuple[str, str]] = {
+    "csv": ("services.pos.pos_csv", "parse_pos_csv"),
+    "json": ("services.pos.json_format", "parse_pos_json"),
+    "geotxt": ("services.pos.odm", "parse_geo_txt"),
+}
+
+
+def detect_format(text: str, filename: str | None) -> str:
+    """csv, json or geotxt from the file name's suffix, else from the first non-empty line."""
+    suffix = PurePath(filename or "").suffix.lower()
+    if suffix in (".csv", ".json"):
+        return suffix[1:]
+    first = next((ln.strip() for ln in text.splitlines() if ln.strip()), "")
+    if first.startswith(("[", "{")):
+        return "json"
+    if first.startswith("#") or "," in first:
+        return "csv"
+    return "geotxt"
+
+
+def _parser(fmt: str) -> Callable[..., list[PosRecord]]:
+    if fmt == "csv":
+        return parse_pos_csv
+    module, name = _PARSERS[fmt]
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError):
+        raise PosError([f"POS format {fmt!r} is not supported by this installation"]) from None
+
+
+def parse_pos_text(text: str, fmt: str, source: str) -> list[PosRecord]:
+    """Parse POS text of a format (csv, json, geotxt); PosError listing every bad row."""
+    return _parser(fmt)(text, source=source)
+
+
+def _match_names(records: list[PosRecord], image_names: list[str]) -> None:
+    """Bare file names (geo.txt, EXIF tools) -> the images' full names, when services.pos has it."""
+    try:
+        from services.pos.io import match_names
+    except ImportError:
+        return
+    match_names(records, image_names)
+
+
+@dataclass
+class PosCheck:
+    """Result of checking POS rows against the uploaded images."""
+
+    errors: list[str] = field(default_factory=list)  # rows naming no image: refused
+    warnings: list[str] = field(default_factory=list)  # images without a row: accepted
+
+
+def check_against_project(
+    records: list[PosRecord], image_names: Iterable[str], known: Iterable[str]
+) -> PosCheck:
+    """Rows must name uploaded images (errors); images lacking a row in both this upload and the stored
+    POS (`known`) are warnings, since ground images may come without attitude or even position."""
+    names = sorted(image_names)
+    _match_names(records, names)
+    have = {r.name for r in records}
+    images = set(names)
+    check = PosCheck()
+    check.errors = [f"POS row {r.name!r} names no uploaded image" for r in records if r.name not in images]
+    covered = have | set(known)
+    check.warnings = [f"image {n!r} has no POS row" for n in names if n not in covered]
+    return check

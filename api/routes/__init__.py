@@ -1,0 +1,16 @@
+"""Routers of the REST API, one module per resource."""
+
+from api.routes import artifacts, health, images, jobs, pos, projects, uploads, webhooks
+
+ROUTERS = [
+    health.router,
+    projects.router,
+    images.router,
+    uploads.router,
+    pos.router,
+    jobs.router,
+    artifacts.router,
+    webhooks.router,
+]
+
+__all__ = ["ROUTERS"]

@@ -1,0 +1,60 @@
+"""Liveness and readiness probes (no authentication)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import anyio
+import sqlalchemy as sa
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse
+
+router = APIRouter(tags=["health"])
+log = logging.getLogger("midview.api")
+
+PROBE_PREFIX = "healthz/"
+
+
+@router.get("/healthz", summary="Liveness: the process answers")
+def healthz() -> dict[str, str]:
+    return {"status": "ok"}
+
+
+def _check_db(request: Request) -> None:
+    with request.app.state.sessionmaker() as session:
+        session.execute(sa.text("SELECT 1"))
+
+
+def _check_storage(request: Request) -> None:
+    request.app.state.storage.list(PROBE_PREFIX)  # S3: fails on a missing bucket or bad credentials
+
+
+async def _probe(check: Callable[[Request], None], request: Request, timeout_s: float) -> str:
+    """The string "ok", or why the check failed or did not finish in time (its thread is abandoned)."""
+    try:
+        with anyio.fail_after(timeout_s):
+            await anyio.to_thread.run_sync(check, request, abandon_on_cancel=True)
+    except TimeoutError:
+        return f"no answer within {timeout_s:g} s"
+    except Exception as e:  # any failure means not ready
+        return f"{type(e).__name__}: {e}"[:300]
+    return "ok"
+
+
+@router.get(
+    "/readyz",
+    summary="Readiness: the database and the object storage are reachable",
+    responses={503: {"description": "A dependency is unreachable"}},
+)
+async def readyz(request: Request) -> JSONResponse:
+    timeout_s = request.app.state.settings.readyz_timeout_s
+    checks = {
+        "database": await _probe(_check_db, request, timeout_s),
+        "storage": await _probe(_check_storage, request, timeout_s),
+    }
+    ready = all(v == "ok" for v in checks.values())
+    if not ready:
+        log.warning("not ready: %s", checks)
+    body = {"status": "ok" if ready else "unavailable", "checks": checks}
+    return JSONResponse(body if ready else {"detail": body}, status_code=200 if ready else 503)

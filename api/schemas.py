@@ -1,0 +1,257 @@
+"""Request and response models of the REST API."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import AnyHttpUrl, BaseModel, ConfigDict, Field
+
+from shared.job_options import JobOptions, Stage
+
+ImageSet = Literal["aerial", "ground"]
+WebhookEvent = Literal["job.succeeded", "job.failed"]
+
+
+class Out(BaseModel):
+    """Response models read ORM rows directly."""
+
+    model_config = ConfigDict(from_attributes=True)
+
+
+class In(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# projects
+class ProjectCreate(In):
+    name: str = Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$")
+    description: str | None = Field(None, max_length=10_000)
+    crs: str | None = Field(None, max_length=64, description="CRS of the project's outputs, e.g. EPSG:32633")
+    origin: tuple[float, float, float] | None = Field(
+        None, description="Local frame origin (lat, lon, h); default: derived from the POS"
+    )
+
+
+class ProjectOut(Out):
+    id: str
+    name: str
+    description: str | None
+    crs: str | None
+    origin_lat: float | None
+    origin_lon: float | None
+    origin_h: float | None
+    created_at: datetime
+
+
+class ProjectDetail(ProjectOut):
+    images: dict[str, int] = Field(description="Number of images per set")
+    pos_records: int
+    jobs: int
+
+
+# images
+class ImageOut(Out):
+    id: str
+    name: str
+    image_set: str
+    sha256: str
+    size_bytes: int
+    width: int | None
+    height: int | None
+    created_at: datetime
+
+
+class UploadedImage(ImageOut):
+    created: bool = Field(description="False when the same bytes were already stored under this name")
+
+
+class ImageUploadResult(BaseModel):
+    images: list[UploadedImage]
+
+
+# multipart uploads
+class UploadCreate(In):
+    name: str = Field(description="Image name, SET/FILE (e.g. aerial/A0001.jpg)", max_length=512)
+    size: int = Field(gt=0, description="Total size in bytes")
+    sha256: str | None = Field(None, pattern=r"^[0-9a-fA-F]{64}$", description="Checked on completion")
+
+
+class UploadOut(BaseModel):
+    id: str
+    name: str
+    size: int
+    sha256: str | None
+    part_size: int
+    part_count: int
+    parts_via: Literal["presigned", "api"] = Field(
+        description="presigned: PUT parts to the URLs of GET .../parts/{n}; api: PUT them to the API"
+    )
+    created_at: datetime
+
+
+class PartUrl(BaseModel):
+    part_number: int
+    method: Literal["PUT"] = "PUT"
+    url: str
+    expires_in: int | None = Field(None, description="Seconds the URL stays valid (presigned)")
+    needs_auth: bool = Field(description="Whether to send the API key (API route) or not (presigned)")
+    size: int = Field(description="Bytes expected in this part")
+
+
+class PartOut(BaseModel):
+    part_number: int
+    etag: str
+
+
+class CompletedPart(In):
+    part_number: int = Field(ge=1, le=10_000)
+    etag: str = Field(min_length=1, max_length=200)
+
+
+class UploadComplete(In):
+    parts: list[CompletedPart] = Field(min_length=1, max_length=10_000)
+
+
+# POS
+class PosOut(Out):
+    image_name: str
+    lat: float
+    lon: float
+    h: float
+    attitude: list[list[float]] | None = Field(description="R_world_from_cam (local ENU), 3x3")
+    std_xy: float | None
+    std_z: float | None
+    std_att: float | None
+    source_format: str | None
+
+
+class PosUploadResult(BaseModel):
+    format: str
+    stored: int = Field(description="Rows inserted or replaced by this upload")
+    total: int = Field(description="POS rows of the project after the upload")
+    removed: int = Field(0, description="Rows deleted (replace=true)")
+    warnings: list[str] = Field(description="E.g. images without a POS row")
+
+
+# jobs
+class JobCreate(In):
+    options: JobOptions = Field(default_factory=JobOptions)
+
+
+class JobRerun(In):
+    from_stage: Stage | None = Field(None, description="First stage to run again; default: all")
+
+
+class StageRunOut(Out):
+    stage: str
+    status: str
+    attempt: int
+    worker: str | None
+    started_at: datetime
+    finished_at: datetime | None
+    duration_s: float | None
+    error: str | None
+
+
+class JobOut(Out):
+    id: str
+    project_id: str
+    status: str
+    current_stage: str | None
+    progress: float = Field(description="0..1")
+    progress_percent: float
+    options: dict[str, Any]
+    timings: dict[str, Any]
+    metrics: dict[str, Any]
+    error: str | None
+    attempt: int
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+class JobDetail(JobOut):
+    stages: list[StageRunOut]
+
+
+class OptionSpec(BaseModel):
+    name: str
+    type: str
+    default: Any
+    help: str
+    choices: list[Any] | None = None
+    minimum: float | None = None
+    maximum: float | None = None
+
+
+class OptionsOut(BaseModel):
+    options: list[OptionSpec]
+    json_schema: dict[str, Any]
+
+
+# artifacts and matches
+class ArtifactOut(Out):
+    id: str
+    job_id: str
+    kind: str
+    name: str
+    size_bytes: int | None
+    sha256: str | None
+    content_type: str | None
+    created_at: datetime
+    download_url: str | None = None
+
+
+class PairSummary(BaseModel):
+    aerial: str
+    ground: str
+    num_matches: int = Field(description="Putative matches (NIM)")
+    num_inliers: int | None = Field(description="The matcher's own verified matches, when stored")
+
+
+class PairList(BaseModel):
+    artifact: str
+    method: str
+    total: int
+    pairs: list[PairSummary]
+
+
+class PairMatchesOut(PairSummary):
+    artifact: str
+    aerial_size: tuple[int, int]
+    ground_size: tuple[int, int]
+    aerial_xy: list[tuple[float, float]] = Field(description="Matched keypoints in the aerial image")
+    ground_xy: list[tuple[float, float]] = Field(description="Matched keypoints in the ground image")
+    scores: list[float]
+    inliers: list[bool] | None
+    views: list[str] | None = Field(description="The rendered view each match came through")
+
+
+# webhooks
+class WebhookCreate(In):
+    url: AnyHttpUrl
+    events: list[WebhookEvent] = Field(default_factory=lambda: ["job.succeeded", "job.failed"], min_length=1)
+
+
+class WebhookOut(Out):
+    id: str
+    url: str
+    events: list[str]
+    active: bool
+    created_at: datetime
+
+
+class WebhookCreated(WebhookOut):
+    secret: str = Field(description="HMAC-SHA256 signing secret; shown only once")
+
+
+class DeliveryOut(Out):
+    id: str
+    job_id: str | None
+    event: str
+    status: str
+    attempts: int
+    next_attempt_at: datetime | None
+    last_error: str | None
+    created_at: datetime

@@ -1,0 +1,235 @@
+"""Webhook deliveries: queue an event for a tenant's webhooks, POST it signed, retry with back-off.
+
+Workers call `enqueue_job_event(session, job)` when a job succeeds or fails, and the worker beat calls
+`deliver_due(session)` periodically (then commits). Every delivery is a row of webhook_deliveries.
+
+Each request is a POST of a JSON body `{"id", "event", "created_at", "data"}` (`id` is the delivery id,
+the same on every retry, for de-duplication) with the headers
+
+    X-Midview-Event: job.succeeded
+    X-Midview-Delivery: <delivery id>
+    X-Midview-Timestamp: <unix seconds>
+    X-Midview-Signature: sha256=<hex HMAC-SHA256(secret, "<timestamp>." + body)>
+
+The timestamp is part of the signed message so that a captured request cannot be replayed later:
+receivers check the HMAC (verify_signature) and that the timestamp is recent. Any 2xx answer is a
+success; anything else (or no answer) is retried after base_delay_s * 2**(attempt - 1), capped at
+max_delay_s, until max_attempts, when the delivery is marked failed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import logging
+import secrets
+from datetime import datetime, timedelta
+from typing import Any
+
+import httpx
+import sqlalchemy as sa
+from sqlalchemy.orm import Session
+
+from shared.db.models import DeliveryStatus, Job, JobStatus, Webhook, WebhookDelivery, utcnow
+
+log = logging.getLogger("midview.webhooks")
+
+EVENTS = ("job.succeeded", "job.failed")
+SIGNATURE_HEADER = "X-Midview-Signature"
+TIMESTAMP_HEADER = "X-Midview-Timestamp"
+EVENT_HEADER = "X-Midview-Event"
+DELIVERY_HEADER = "X-Midview-Delivery"
+
+MAX_ATTEMPTS = 8
+BASE_DELAY_S = 30.0
+MAX_DELAY_S = 3600.0
+TIMEOUT_S = 10.0
+
+
+def new_secret() -> str:
+    return "whsec_" + secrets.token_urlsafe(32)
+
+
+def sign(secret: str, timestamp: str, body: bytes) -> str:
+    """The X-Midview-Signature value of a body sent at timestamp."""
+    mac = hmac.new(secret.encode(), timestamp.encode() + b"." + body, hashlib.sha256)
+    return "sha256=" + mac.hexdigest()
+
+
+def verify_signature(
+    secret: str,
+    body: bytes,
+    timestamp: str,
+    signature: str,
+    tolerance_s: float = 300.0,
+    now: datetime | None = None,
+) -> bool:
+    """What a receiver checks: the signature matches and the timestamp is within tolerance_s of now."""
+    try:
+        sent = float(timestamp)
+    except ValueError:
+        return False
+    if abs((now or utcnow()).timestamp() - sent) > tolerance_s:
+        return False
+    return hmac.compare_digest(sign(secret, timestamp, body), signature)
+
+
+def backoff_s(attempts: int, base_delay_s: float = BASE_DELAY_S, max_delay_s: float = MAX_DELAY_S) -> float:
+    """Delay before the next try after `attempts` failed ones."""
+    return min(max_delay_s, base_delay_s * 2 ** max(0, attempts - 1))
+
+
+def job_event(job: Job) -> str | None:
+    return {JobStatus.succeeded: "job.succeeded", JobStatus.failed: "job.failed"}.get(job.status)
+
+
+def job_payload(job: Job) -> dict[str, Any]:
+    return {
+        "job": {
+            "id": job.id,
+            "project_id": job.project_id,
+            "status": job.status.value,
+            "attempt": job.attempt,
+            "error": job.error,
+            "metrics": job.metrics or {},
+            "timings": job.timings or {},
+            "finished_at": job.finished_at.isoformat() if job.finished_at else None,
+        }
+    }
+
+
+def enqueue(
+    session: Session,
+    tenant_id: str,
+    event: str,
+    payload: dict[str, Any],
+    job_id: str | None = None,
+    now: datetime | None = None,
+) -> list[WebhookDelivery]:
+    """A pending delivery of event to every active webhook of the tenant subscribed to it."""
+    hooks = session.scalars(sa.select(Webhook).where(Webhook.tenant_id == tenant_id, Webhook.active))
+    out = []
+    for hook in hooks:
+        if event in (hook.events or []):
+            d = WebhookDelivery(
+                webhook=hook, job_id=job_id, event=event, payload=payload, next_attempt_at=now or utcnow()
+            )
+            session.add(d)
+            out.append(d)
+    session.flush()
+    return out
+
+
+def enqueue_job_event(session: Session, job: Job, now: datetime | None = None) -> list[WebhookDelivery]:
+    """Queue job.succeeded / job.failed for a job that just finished (nothing for other statuses)."""
+    event = job_event(job)
+    if event is None:
+        return []
+    return enqueue(session, job.project.tenant_id, event, job_payload(job), job_id=job.id, now=now)
+
+
+def request_body(delivery: WebhookDelivery) -> bytes:
+    envelope = {
+        "id": delivery.id,
+        "event": delivery.event,
+        "created_at": delivery.created_at.isoformat() if delivery.created_at else None,
+        "data": delivery.payload,
+    }
+    return json.dumps(envelope, separators=(",", ":"), sort_keys=True).encode()
+
+
+def deliver(
+    session: Session,
+    delivery: WebhookDelivery,
+    *,
+    client: httpx.Client | None = None,
+    now: datetime | None = None,
+    max_attempts: int = MAX_ATTEMPTS,
+    base_delay_s: float = BASE_DELAY_S,
+    max_delay_s: float = MAX_DELAY_S,
+    timeout_s: float = TIMEOUT_S,
+) -> bool:
+    """Try one delivery now; record the outcome (delivered, retry at next_attempt_at, or failed)."""
+    now = now or utcnow()
+    hook = delivery.webhook
+    if not hook.active:
+        delivery.status, delivery.next_attempt_at = DeliveryStatus.failed, None
+        delivery.last_error = "webhook inactive"
+        session.flush()
+        return False
+    body = request_body(delivery)
+    timestamp = str(int(now.timestamp()))
+    headers = {
+        "Content-Type": "application/json",
+        "User-Agent": "midview-webhooks/1",
+        EVENT_HEADER: delivery.event,
+        DELIVERY_HEADER: delivery.id,
+        TIMESTAMP_HEADER: timestamp,
+        SIGNATURE_HEADER: sign(hook.secret, timestamp, body),
+    }
+    delivery.attempts += 1
+    error: str | None = None
+    try:
+        if client is None:
+            with httpx.Client(follow_redirects=False) as own:
+                r = own.post(hook.url, content=body, headers=headers, timeout=timeout_s)
+        else:
+            r = client.post(hook.url, content=body, headers=headers, timeout=timeout_s)
+        if not r.is_success:
+            error = f"HTTP {r.status_code}: {r.text[:200]}"
+    except httpx.HTTPError as e:
+        error = f"{type(e).__name__}: {e}"[:1000]
+    if error is None:
+        delivery.status, delivery.next_attempt_at, delivery.last_error = DeliveryStatus.delivered, None, None
+    elif delivery.attempts >= max_attempts:
+        delivery.status, delivery.next_attempt_at, delivery.last_error = DeliveryStatus.failed, None, error
+        log.warning("webhook delivery %s to %s failed for good: %s", delivery.id, hook.url, error)
+    else:
+        delivery.last_error = error
+        delivery.next_attempt_at = now + timedelta(
+            seconds=backoff_s(delivery.attempts, base_delay_s, max_delay_s)
+        )
+        log.info(
+            "webhook delivery %s to %s failed (%s); retry at %s",
+            delivery.id,
+            hook.url,
+            error,
+            delivery.next_attempt_at.isoformat(),
+        )
+    session.flush()
+    return error is None
+
+
+def deliver_due(
+    session: Session,
+    *,
+    now: datetime | None = None,
+    limit: int = 100,
+    client: httpx.Client | None = None,
+    **kw: Any,
+) -> int:
+    """Try every pending delivery whose time has come (at most limit, oldest first); return how many
+    succeeded. Rows are locked with SKIP LOCKED on PostgreSQL, so several beats never send one twice;
+    the caller commits. kw: max_attempts, base_delay_s, max_delay_s, timeout_s (see deliver)."""
+    now = now or utcnow()
+    stmt = (
+        sa.select(WebhookDelivery)
+        .where(
+            WebhookDelivery.status == DeliveryStatus.pending,
+            sa.or_(WebhookDelivery.next_attempt_at.is_(None), WebhookDelivery.next_attempt_at <= now),
+        )
+        .order_by(WebhookDelivery.next_attempt_at, WebhookDelivery.created_at)
+        .limit(limit)
+        .with_for_update(skip_locked=True)
+    )
+    due = list(session.scalars(stmt))
+    if not due:
+        return 0
+    own = client is None
+    http = client or httpx.Client(follow_redirects=False)
+    try:
+        return sum(deliver(session, d, client=http, now=now, **kw) for d in due)
+    finally:
+        if own:
+            http.close()

@@ -1,0 +1,108 @@
+"""Options of a pipeline job: one validated pydantic model shared by the API, the CLI and the workers.
+
+The API lists them at `GET /options` (option_specs) and validates `POST /projects/{id}/jobs` bodies with
+JobOptions; the workers read `Job.options` back with `JobOptions.model_validate(job.options)`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, get_args
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+Stage = Literal[
+    "aerial_sfm", "train_splat", "plan_views", "render_views", "match_views", "reduce", "combined_sfm"
+]
+STAGES: tuple[str, ...] = get_args(Stage)  # in pipeline order
+
+# the Celery queue each stage runs on (workers on gpu/cpu/reduce queues)
+STAGE_QUEUES: dict[str, str] = {
+    "aerial_sfm": "cpu",
+    "train_splat": "gpu",
+    "plan_views": "cpu",
+    "render_views": "gpu",
+    "match_views": "gpu",
+    "reduce": "reduce",
+    "combined_sfm": "cpu",
+}
+
+# stages that need ground images (everything after the aerial-only part)
+GROUND_STAGES = frozenset({"plan_views", "render_views", "match_views", "reduce", "combined_sfm"})
+
+
+class JobOptions(BaseModel):
+    """Every knob of a job; unknown fields are rejected so that a typo never passes silently."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    stages: list[Stage] = Field(
+        default_factory=lambda: list(STAGES),
+        min_length=1,
+        description="Pipeline stages to run (kept in pipeline order); default: all of them",
+    )
+    sfm_features: Literal["sift", "aliked"] = Field(
+        "sift", description="Local features of the aerial structure-from-motion"
+    )
+    matcher: Literal["aliked-lightglue", "sift"] = Field(
+        "aliked-lightglue", description="Matcher between rendered views and the aerial/ground images"
+    )
+    view_planner: Literal["paper", "ground-aware", "both"] = Field(
+        "paper", description="How intermediate viewpoints are chosen between aerial and ground cameras"
+    )
+    views_per_ground_image: int = Field(
+        4, ge=1, le=16, description="Intermediate views rendered per ground image"
+    )
+    splat_steps: int = Field(7000, ge=100, le=200_000, description="3DGS training iterations")
+    splat_max_width: int = Field(
+        1600, ge=64, le=8192, description="Aerial images are downscaled to this width for 3DGS training"
+    )
+    max_keypoints: int = Field(4096, ge=64, le=65_536, description="Keypoints per image for matching")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="Random seed (view planning, training)")
+
+    @field_validator("stages")
+    @classmethod
+    def _pipeline_order(cls, value: list[str]) -> list[str]:
+        """No repeats; pipeline order whatever order was given."""
+        if len(set(value)) != len(value):
+            raise ValueError("stages must not repeat")
+        return sorted(value, key=STAGES.index)
+
+    def needs_ground(self) -> bool:
+        """Whether any selected stage works on ground images."""
+        return any(s in GROUND_STAGES for s in self.stages)
+
+    def stages_from(self, from_stage: str | None) -> list[str]:
+        """The selected stages from from_stage on (all of them for None); ValueError if not selected."""
+        if from_stage is None:
+            return list(self.stages)
+        if from_stage not in self.stages:
+            raise ValueError(f"stage {from_stage!r} is not among this job's stages {self.stages}")
+        return self.stages[self.stages.index(from_stage) :]
+
+
+def _type_name(schema: dict[str, Any]) -> str:
+    if schema.get("type") == "array":
+        return f"list[{_type_name(schema.get('items', {}))}]"
+    return str(schema.get("type", "string" if "enum" in schema else "any"))
+
+
+def option_specs() -> list[dict[str, Any]]:
+    """One entry per option: name, type, default, help, and choices/minimum/maximum where they apply."""
+    schema = JobOptions.model_json_schema()
+    defaults = JobOptions().model_dump(mode="json")
+    out = []
+    for name, prop in schema["properties"].items():
+        spec: dict[str, Any] = {
+            "name": name,
+            "type": _type_name(prop),
+            "default": defaults[name],
+            "help": prop.get("description", ""),
+        }
+        choices = prop.get("enum") or prop.get("items", {}).get("enum")
+        if choices:
+            spec["choices"] = list(choices)
+        for k in ("minimum", "maximum"):
+            if k in prop:
+                spec[k] = prop[k]
+        out.append(spec)
+    return out

@@ -1,0 +1,212 @@
+"""Job outputs through the API: the progress event stream, artifact downloads, and the pairs of a match
+file. A test thread plays the worker by updating the job row through shared.db.crud."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from shared.db import crud
+from shared.db.models import JobStatus
+from shared.matchfile import MatchFile, PairMatches
+from shared.storage.keys import job_key
+
+
+def _job(env, tenant, make_jpeg) -> tuple[str, str]:
+    """(project id, job id) of a new queued job (one aerial image with POS, one ground image)."""
+    c = env.client
+    pid = c.post("/projects", json={"name": f"p-{uuid.uuid4().hex[:8]}"}, headers=tenant.headers).json()["id"]
+    for image_set, name in (("aerial", "A1.jpg"), ("ground", "G1.jpg")):
+        r = c.post(
+            f"/projects/{pid}/images",
+            params={"set": image_set},
+            files={"f": (name, make_jpeg(seed=len(name)))},
+            headers=tenant.headers,
+        )
+        assert r.status_code == 201
+    pos = "name,lat,lon,h\naerial/A1.jpg,55.7,13.19,100\n"
+    assert (
+        c.post(f"/projects/{pid}/pos", files={"file": ("pos.csv", pos)}, headers=tenant.headers).status_code
+        == 200
+    )
+    r = c.post(f"/projects/{pid}/jobs", json={}, headers=tenant.headers)
+    assert r.status_code == 201
+    return pid, r.json()["id"]
+
+
+def _read_events(lines) -> list[tuple[str, dict]]:
+    events, name, data = [], None, None
+    for line in lines:
+        if line.startswith("event: "):
+            name = line[7:]
+        elif line.startswith("data: "):
+            data = json.loads(line[6:])
+        elif line == "" and name is not None:
+            events.append((name, data))
+            name = data = None
+    return events
+
+
+def test_event_stream_follows_the_job_to_its_end(api_env, make_jpeg) -> None:
+    t = api_env.tenant()
+    _, jid = _job(api_env, t, make_jpeg)
+    steps = [(0.1, "aerial_sfm"), (0.5, "train_splat"), (0.9, "reduce")]
+
+    def worker() -> None:
+        time.sleep(0.3)
+        for progress, stage in steps:
+            with api_env.session() as s:
+                crud.update_job_progress(s, jid, progress, stage)
+                s.commit()
+            time.sleep(0.3)
+        with api_env.session() as s:
+            crud.update_job_results(s, jid, metrics={"pairs": 3})
+            crud.set_job_status(s, jid, JobStatus.succeeded)
+            s.commit()
+
+    thread = threading.Thread(target=worker, daemon=True)
+    thread.start()
+    t0 = time.monotonic()
+    with api_env.client.stream("GET", f"/jobs/{jid}/events", headers=t.headers) as r:
+        assert r.status_code == 200
+        assert r.headers["content-type"].startswith("text/event-stream")
+        events = _read_events(r.iter_lines())
+    thread.join(5)
+    assert time.monotonic() - t0 < 10
+    progress = [d for name, d in events if name == "progress"]
+    assert progress[0]["status"] == "queued" and progress[0]["progress"] == 0
+    seen = [(d["progress"], d["stage"]) for d in progress if d["status"] == "running"]
+    assert seen == steps  # every change, in order, once
+    assert progress[-1]["status"] == "succeeded" and progress[-1]["progress_percent"] == 100.0
+    assert progress[-1]["metrics"] == {"pairs": 3}
+    assert events[-1] == ("end", {"id": jid, "status": "succeeded"})
+
+    # a finished job: its state, then the end, at once
+    with api_env.client.stream("GET", f"/jobs/{jid}/events", headers=t.headers) as r:
+        events = _read_events(r.iter_lines())
+    assert [name for name, _ in events] == ["progress", "end"]
+
+
+def test_artifact_listing_and_downloads(api_env, make_jpeg) -> None:
+    c, t = api_env.client, api_env.tenant()
+    pid, jid = _job(api_env, t, make_jpeg)
+    data = json.dumps({"ncm": 123}).encode()
+    key = job_key(t.id, pid, jid, "reduce", "report.json")
+    api_env.storage.put_bytes(key, data, content_type="application/json")
+    with api_env.session() as s:
+        crud.record_artifact(
+            s,
+            jid,
+            "report",
+            "reduce/report.json",
+            key,
+            len(data),
+            hashlib.sha256(data).hexdigest(),
+            "application/json",
+        )
+        crud.record_artifact(s, jid, "model", "missing.ply", job_key(t.id, pid, jid, "x", "missing.ply"))
+        s.commit()
+    arts = {a["name"]: a for a in c.get(f"/jobs/{jid}/artifacts", headers=t.headers).json()}
+    assert set(arts) == {"reduce/report.json", "missing.ply"}
+    art = arts["reduce/report.json"]
+    assert art["size_bytes"] == len(data) and art["kind"] == "report" and art["job_id"] == jid
+    if api_env.s3:  # a presigned URL: no API key needed
+        assert art["download_url"].startswith(api_env.settings.s3_endpoint_url)
+        assert httpx.get(art["download_url"], timeout=10).content == data
+    else:  # the API's own download route
+        assert art["download_url"] == f"http://testserver/artifacts/{art['id']}/download"
+        assert c.get(art["download_url"]).status_code == 401
+        assert c.get(art["download_url"], headers=t.headers).content == data
+    r = c.get(f"/artifacts/{art['id']}/download", headers=t.headers)
+    assert r.status_code == 200 and r.content == data
+    assert r.headers["content-type"] == "application/json"
+    assert 'filename="report.json"' in r.headers["content-disposition"]
+    assert c.get(f"/artifacts/{art['id']}", headers=t.headers).json()["sha256"] == art["sha256"]
+    r = c.get(f"/artifacts/{arts['missing.ply']['id']}/download", headers=t.headers)
+    assert r.status_code == 404 and "missing" in r.json()["detail"]
+    assert c.get(f"/artifacts/{uuid.uuid4()}", headers=t.headers).status_code == 404
+
+
+def _match_file(path: Path, n_ag: int = 5) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(0)
+    kps = {
+        n: rng.uniform(0, 60, (12, 2)).astype(np.float32)
+        for n in ("aerial/A1.jpg", "aerial/A2.jpg", "ground/G1.jpg", "ground/G2.jpg")
+    }
+    with MatchFile(path, "w", method="midview") as mf:
+        for name, kp in kps.items():
+            mf.add_keypoints(name, kp, (64, 48) if name.startswith("aerial") else (32, 24))
+        m = np.stack([np.arange(n_ag), np.arange(n_ag)[::-1] + 2], axis=1)
+        inliers = np.arange(n_ag) % 2 == 0
+        mf.add_pair(PairMatches("aerial/A1.jpg", "ground/G1.jpg", m, np.linspace(1, 0, n_ag), inliers))
+        views = np.array([mf.view_index("v0"), mf.view_index("v1"), mf.view_index("v0")])
+        gm = np.array([[0, 3], [1, 4], [2, 5]])  # stored ground first: (G2 index, A1 index)
+        mf.add_pair(PairMatches("ground/G2.jpg", "aerial/A1.jpg", gm, np.ones(3), None, views))
+        mf.add_pair(PairMatches("aerial/A1.jpg", "aerial/A2.jpg", np.array([[0, 0]]), np.ones(1)))
+    return kps
+
+
+def _record(env, tenant, pid: str, jid: str, path: Path, name: str = "matches.h5") -> None:
+    key = job_key(tenant.id, pid, jid, "reduce", name)
+    env.storage.put_file(key, path)
+    with env.session() as s:
+        crud.record_artifact(s, jid, "matches", name, key, path.stat().st_size)
+        s.commit()
+
+
+def test_pairs_of_a_match_file(api_env, make_jpeg, tmp_path: Path) -> None:
+    c, t = api_env.client, api_env.tenant()
+    pid, jid = _job(api_env, t, make_jpeg)
+    r = c.get(f"/jobs/{jid}/pairs", headers=t.headers)
+    assert r.status_code == 404 and "no match file" in r.json()["detail"]
+    kps = _match_file(tmp_path / "m.h5")
+    _record(api_env, t, pid, jid, tmp_path / "m.h5")
+
+    r = c.get(f"/jobs/{jid}/pairs", headers=t.headers)
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["artifact"] == "matches.h5" and body["method"] == "midview" and body["total"] == 2
+    assert body["pairs"] == [  # aerial first, aerial-aerial pairs left out
+        {"aerial": "aerial/A1.jpg", "ground": "ground/G1.jpg", "num_matches": 5, "num_inliers": 3},
+        {"aerial": "aerial/A1.jpg", "ground": "ground/G2.jpg", "num_matches": 3, "num_inliers": None},
+    ]
+    assert c.get(f"/jobs/{jid}/pairs", params={"offset": 1, "limit": 1}, headers=t.headers).json()[
+        "pairs"
+    ] == [body["pairs"][1]]
+
+    one = c.get(f"/jobs/{jid}/pairs/aerial/A1.jpg/ground/G2.jpg", headers=t.headers).json()
+    assert one["num_matches"] == 3 and one["aerial_size"] == [64, 48] and one["ground_size"] == [32, 24]
+    np.testing.assert_allclose(one["aerial_xy"], kps["aerial/A1.jpg"][[3, 4, 5]], rtol=1e-6)
+    np.testing.assert_allclose(one["ground_xy"], kps["ground/G2.jpg"][[0, 1, 2]], rtol=1e-6)
+    assert one["views"] == ["v0", "v1", "v0"] and one["inliers"] is None
+
+    r = c.get(
+        f"/jobs/{jid}/pairs/aerial/A1.jpg/ground/G1.jpg", params={"inliers_only": True}, headers=t.headers
+    )
+    g1 = r.json()
+    assert g1["num_matches"] == 5 and g1["num_inliers"] == 3 and g1["inliers"] == [True] * 3
+    np.testing.assert_allclose(g1["aerial_xy"], kps["aerial/A1.jpg"][[0, 2, 4]], rtol=1e-6)
+    np.testing.assert_allclose(g1["ground_xy"], kps["ground/G1.jpg"][[6, 4, 2]], rtol=1e-6)
+    assert g1["scores"] == [1.0, 0.5, 0.0]
+
+    assert c.get(f"/jobs/{jid}/pairs/aerial/A2.jpg/ground/G1.jpg", headers=t.headers).status_code == 404
+    assert c.get(f"/jobs/{jid}/pairs/aerial/NOPE.jpg/ground/G1.jpg", headers=t.headers).status_code == 404
+    r = c.get(f"/jobs/{jid}/pairs", params={"artifact": "other.h5"}, headers=t.headers)
+    assert r.status_code == 404
+
+    # a replaced match file is read again, not served from the cache
+    _match_file(tmp_path / "m2.h5", n_ag=7)
+    _record(api_env, t, pid, jid, tmp_path / "m2.h5")
+    assert c.get(f"/jobs/{jid}/pairs", headers=t.headers).json()["pairs"][0]["num_matches"] == 7
+    # not a match file
+    (tmp_path / "bad.h5").write_bytes(b"not hdf5")
+    _record(api_env, t, pid, jid, tmp_path / "bad.h5", name="bad.h5")
+    r = c.get(f"/jobs/{jid}/pairs", params={"artifact": "bad.h5"}, headers=t.headers)
+    assert r.status_code == 422

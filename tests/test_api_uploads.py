@@ -1,0 +1,146 @@
+"""Resumable multipart uploads: presigned part URLs on S3 (SeaweedFS), parts through the API on local
+storage; completion checks (size, sha256, decoding) and aborts."""
+
+from __future__ import annotations
+
+import hashlib
+import uuid
+
+import httpx
+
+from shared.storage.keys import image_key_for_name
+
+MB = 1024 * 1024
+
+
+def _project(env, tenant) -> str:
+    r = env.client.post("/projects", json={"name": f"p-{uuid.uuid4().hex[:8]}"}, headers=tenant.headers)
+    assert r.status_code == 201
+    return r.json()["id"]
+
+
+def _send_parts(env, tenant, pid: str, up: dict, data: bytes) -> list[dict]:
+    """PUT every part where GET .../parts/{n} says (presigned storage URL, or the API); their ETags."""
+    parts = []
+    for n in range(1, up["part_count"] + 1):
+        r = env.client.get(f"/projects/{pid}/uploads/{up['id']}/parts/{n}", headers=tenant.headers)
+        assert r.status_code == 200, r.text
+        target = r.json()
+        chunk = data[(n - 1) * up["part_size"] : n * up["part_size"]]
+        assert target["size"] == len(chunk) and target["method"] == "PUT"
+        if target["needs_auth"]:  # the API receives the part (local storage)
+            assert target["url"].startswith("http://testserver/projects/")
+            put = env.client.put(target["url"], content=chunk, headers=tenant.headers)
+            assert put.status_code == 200, put.text
+            etag = put.json()["etag"]
+        else:  # straight to the bucket, no credentials
+            put = httpx.put(target["url"], content=chunk, timeout=30)
+            assert put.status_code == 200, put.text
+            etag = put.headers["etag"]
+        parts.append({"part_number": n, "etag": etag})
+    return parts
+
+
+def test_multipart_upload_registers_the_image(api_env, make_jpeg) -> None:
+    c, t = api_env.client, api_env.tenant()
+    pid = _project(api_env, t)
+    data = make_jpeg(320, 240, seed=7, padding=6 * MB)  # two parts of 5 MiB at least
+    sha = hashlib.sha256(data).hexdigest()
+    r = c.post(
+        f"/projects/{pid}/uploads",
+        json={"name": "aerial/BIG.jpg", "size": len(data), "sha256": sha},
+        headers=t.headers,
+    )
+    assert r.status_code == 201, r.text
+    up = r.json()
+    assert up["part_count"] == 2 and up["part_size"] == api_env.settings.upload_part_size
+    assert up["parts_via"] == ("presigned" if api_env.s3 else "api")
+    assert [u["id"] for u in c.get(f"/projects/{pid}/uploads", headers=t.headers).json()] == [up["id"]]
+    # a second upload of the same name is refused while this one runs; so is a direct upload
+    again = c.post(f"/projects/{pid}/uploads", json={"name": "aerial/BIG.jpg", "size": 10}, headers=t.headers)
+    assert again.status_code == 409
+    direct = c.post(
+        f"/projects/{pid}/images",
+        params={"set": "aerial"},
+        files={"f": ("BIG.jpg", make_jpeg())},
+        headers=t.headers,
+    )
+    assert direct.status_code == 409
+    assert c.get(f"/projects/{pid}/uploads/{up['id']}/parts/3", headers=t.headers).status_code == 422
+
+    parts = _send_parts(api_env, t, pid, up, data)
+    r = c.post(f"/projects/{pid}/uploads/{up['id']}/complete", json={"parts": parts[:1]}, headers=t.headers)
+    assert r.status_code == 422  # a part missing
+    r = c.post(f"/projects/{pid}/uploads/{up['id']}/complete", json={"parts": parts[::-1]}, headers=t.headers)
+    assert r.status_code == 201, r.text
+    image = r.json()
+    assert image["name"] == "aerial/BIG.jpg" and image["sha256"] == sha and image["created"] is True
+    assert (image["width"], image["height"], image["size_bytes"]) == (320, 240, len(data))
+    assert api_env.storage.get_bytes(image_key_for_name(t.id, pid, "aerial/BIG.jpg")) == data
+    assert c.get(f"/projects/{pid}/images/aerial/BIG.jpg", headers=t.headers).json()["sha256"] == sha
+    assert c.get(f"/projects/{pid}/uploads", headers=t.headers).json() == []
+    assert c.get(f"/projects/{pid}/uploads/{up['id']}", headers=t.headers).status_code == 404
+    r = c.post(f"/projects/{pid}/uploads", json={"name": "aerial/BIG.jpg", "size": 10}, headers=t.headers)
+    assert r.status_code == 409 and r.json()["detail"]["sha256"] == sha  # exists now
+
+
+def test_multipart_upload_failing_its_checks_is_deleted(api_env, make_jpeg) -> None:
+    c, t = api_env.client, api_env.tenant()
+    pid = _project(api_env, t)
+    good = make_jpeg(seed=3)
+    cases = {
+        "aerial/SHA.jpg": (good, "0" * 64, "does not match"),
+        "aerial/TRUNC.jpg": (good[:-100], None, "truncated JPEG"),
+        "ground/JUNK.png": (b"\x89PNG not really" * 50, None, "cannot decode"),
+    }
+    for name, (data, sha, needle) in cases.items():
+        body = {"name": name, "size": len(data), **({"sha256": sha} if sha else {})}
+        up = c.post(f"/projects/{pid}/uploads", json=body, headers=t.headers).json()
+        parts = _send_parts(api_env, t, pid, up, data)
+        r = c.post(f"/projects/{pid}/uploads/{up['id']}/complete", json={"parts": parts}, headers=t.headers)
+        assert r.status_code == 422, (name, r.text)
+        assert needle in r.json()["detail"]["errors"][0], r.json()
+        assert not api_env.storage.exists(image_key_for_name(t.id, pid, name))
+        assert c.get(f"/projects/{pid}/uploads/{up['id']}", headers=t.headers).status_code == 404
+    assert c.get(f"/projects/{pid}/images", headers=t.headers).json() == []
+
+
+def test_multipart_upload_refusals_and_abort(api_env, make_jpeg, monkeypatch) -> None:
+    c, t = api_env.client, api_env.tenant()
+    pid = _project(api_env, t)
+    for body, status in [
+        ({"name": "A1.jpg", "size": 10}, 422),  # no set
+        ({"name": "sky/A1.jpg", "size": 10}, 422),
+        ({"name": "aerial/../A1.jpg", "size": 10}, 422),
+        ({"name": "aerial/A1.txt", "size": 10}, 422),
+        ({"name": "aerial/A1.jpg", "size": 0}, 422),
+        ({"name": "aerial/A1.jpg", "size": 10, "sha256": "xyz"}, 422),
+    ]:
+        assert c.post(f"/projects/{pid}/uploads", json=body, headers=t.headers).status_code == status, body
+    monkeypatch.setattr(api_env.settings, "max_upload_bytes", 1000)
+    r = c.post(f"/projects/{pid}/uploads", json={"name": "aerial/A1.jpg", "size": 1001}, headers=t.headers)
+    assert r.status_code == 413 and "upload limit" in r.json()["detail"]
+    monkeypatch.undo()
+
+    data = make_jpeg(seed=4)
+    up = c.post(
+        f"/projects/{pid}/uploads", json={"name": "aerial/A1.jpg", "size": len(data)}, headers=t.headers
+    )
+    uid = up.json()["id"]
+    part = f"/projects/{pid}/uploads/{uid}/parts/1"
+    assert c.put(part, content=data[:-1], headers=t.headers).status_code == 422  # short part
+    assert c.put(part, content=data + b"x", headers=t.headers).status_code == 413  # long part
+    assert c.put(part, content=data, headers=t.headers).status_code == 200  # through the API on any backend
+    assert c.delete(f"/projects/{pid}/uploads/{uid}", headers=t.headers).status_code == 204
+    assert c.delete(f"/projects/{pid}/uploads/{uid}", headers=t.headers).status_code == 404
+    assert c.put(part, content=data, headers=t.headers).status_code == 404
+    assert c.get(f"/projects/{pid}/uploads/not-an-id", headers=t.headers).status_code == 404
+    assert not api_env.storage.exists(image_key_for_name(t.id, pid, "aerial/A1.jpg"))
+    # the name is free again once aborted
+    up = c.post(
+        f"/projects/{pid}/uploads", json={"name": "aerial/A1.jpg", "size": len(data)}, headers=t.headers
+    )
+    assert up.status_code == 201
+    # deleting the project drops unfinished uploads with everything else
+    assert c.delete(f"/projects/{pid}", headers=t.headers).status_code == 204
+    assert api_env.storage.list(f"tenants/{t.id}/") == []
