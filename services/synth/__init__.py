@@ -1,0 +1,15 @@
+"""Synthetic aerial + ground survey of procedural urban blocks with exact ground truth.
+
+    from services.synth import confs, main, load_gt, read_depth
+    main(confs["small"], Path("/tmp/synth_small"), seed=0)    # render a scene folder (docs/formats.md)
+    gt = load_gt("/tmp/synth_small")                           # true cameras, poses, depth, co-visibility
+
+The renderer (kernels.py) ray-casts textured boxes, spheres and the ground plane with numba; it is
+independent of any 3DGS code. Numba is only imported when rendering.
+"""
+
+from .gt import SceneGT, load_gt, read_covisible, read_depth
+from .pipeline import main
+from .presets import confs
+
+__all__ = ["SceneGT", "confs", "load_gt", "main", "read_covisible", "read_depth"]

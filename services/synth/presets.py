@@ -1,0 +1,143 @@
+"""Named configurations of the synthetic survey (`confs[name]`, hloc style)."""
+
+from __future__ import annotations
+
+import copy
+
+ORIGIN = {"lat0": 55.7047, "lon0": 13.1910, "h0": 70.0}  # Lund; ellipsoidal height of the ground plane
+
+# Linear-light radiometry. The aerial flight is flown around noon, the ground walk late in the afternoon
+# (lower, warmer sun from the west, different exposure and white balance).
+LIGHT_AERIAL = {
+    "sun_azimuth": 165.0,  # degrees clockwise from north
+    "sun_elevation": 52.0,
+    "sun": [1.05, 1.0, 0.92],
+    "ambient": [0.26, 0.3, 0.38],
+    "zenith": [0.16, 0.3, 0.75],
+    "horizon": [0.6, 0.68, 0.8],
+    "haze": [0.55, 0.6, 0.68],
+    "haze_distance": 2500.0,
+    "clouds": 0.3,
+    "shadows": True,
+    "exposure": 0.95,
+    "wb": [1.0, 1.0, 1.0],
+    "vignetting": 0.25,
+    "read_noise": 1.2,
+    "shot_noise": 0.12,
+}
+LIGHT_GROUND = {
+    "sun_azimuth": 250.0,
+    "sun_elevation": 24.0,
+    "sun": [1.0, 0.8, 0.58],
+    "ambient": [0.28, 0.31, 0.4],
+    "zenith": [0.2, 0.33, 0.7],
+    "horizon": [0.75, 0.72, 0.7],
+    "haze": [0.62, 0.6, 0.58],
+    "haze_distance": 1500.0,
+    "clouds": 0.45,
+    "shadows": True,
+    "exposure": 1.15,
+    "wb": [0.95, 1.0, 1.1],
+    "vignetting": 0.15,
+    "read_noise": 1.6,
+    "shot_noise": 0.2,
+}
+GROUND_VIEWS = {"along": 0.3, "in": 0.35, "diag": 0.25, "out": 0.1}  # probabilities of the view kinds
+POS_NOISE = {
+    "aerial": {"std_xy": 0.5, "std_z": 0.8, "std_att": 1.0},  # RTK-less drone GNSS, gimbal IMU
+    "ground": {"std_xy": 2.5, "std_z": 4.0, "std_att": 2.0},  # phone GNSS in a street canyon
+}
+
+_BASE = {
+    "scene": {
+        "blocks": [1, 1],  # surveyed blocks (x, y)
+        "context": 1,  # rings of unsurveyed blocks around them
+        "block": [56.0, 56.0],  # block size including sidewalks (m)
+        "road": 12.0,
+        "sidewalk": 3.5,
+        "lot_min": 10.0,
+        "lot_max": 30.0,
+        "height": [6.0, 25.0],
+        "p_building": 0.8,
+        "clutter": 1.0,
+    },
+    "aerial": {
+        "width": 1600,
+        "height": 1200,
+        "f": 1300.0,
+        "altitude": 60.0,
+        "overlap": [0.75, 0.75],  # forward, side (nadir camera)
+        "grid": [2, 4],  # flight lines x stations; None: cover the surveyed blocks
+        "pitch": -45.0,
+        "jitter_m": 0.4,
+        "jitter_deg": 1.5,
+    },
+    "ground": {
+        "width": 1024,
+        "height": 768,
+        "f": 750.0,
+        "count": 15,
+        "height_m": [1.5, 2.5],
+        "pitch": [-3.0, 12.0],
+        "roll_deg": 1.5,
+        "p_lane": 0.7,  # in a driving lane; otherwise on the opposite sidewalk
+        "views": GROUND_VIEWS,
+    },
+    "render": {"supersample": 2, "jpeg_quality": 92, "grid_cell": 4.0, "clearance": 1.5},
+    "lighting": {"aerial": LIGHT_AERIAL, "ground": LIGHT_GROUND},
+    "pos": POS_NOISE,
+    "origin": ORIGIN,
+    "gt": {"n_points": 4000, "covis_step": 8, "covis_min": 0.05, "max_point_depth": 300.0},
+}
+
+
+def _preset(name: str, **over: dict) -> dict:
+    c = copy.deepcopy(_BASE)
+    c["name"] = name
+    for k, v in over.items():
+        c[k].update(v)
+    return c
+
+
+confs: dict[str, dict] = {
+    # unit tests: 2 buildings, 10 aerial + 4 ground images, a few seconds
+    "tiny": _preset(
+        "tiny",
+        scene={
+            "context": 0,
+            "block": [40.0, 26.0],
+            "road": 10.0,
+            "sidewalk": 3.0,
+            "lot_max": 20.0,
+            "height": [8.0, 16.0],
+            "p_building": 1.0,
+            "clutter": 0.6,
+        },
+        aerial={
+            "width": 480,
+            "height": 360,
+            "f": 390.0,
+            "altitude": 40.0,
+            "overlap": [0.6, 0.6],
+            "grid": [2, 1],
+        },
+        ground={
+            "width": 320,
+            "height": 240,
+            "f": 234.0,
+            "count": 4,
+            "views": {"in": 0.45, "diag": 0.45, "along": 0.1},
+        },
+        gt={"n_points": 1000},
+    ),
+    # one block with its neighbours: 40 aerial + 15 ground images, a few minutes on 2 cores
+    "small": _preset("small"),
+    # 3 x 3 surveyed blocks: ~350 aerial + 150 ground images (long; for a many-core machine)
+    "city": _preset(
+        "city",
+        scene={"blocks": [3, 3], "block": [60.0, 60.0]},
+        aerial={"altitude": 70.0, "overlap": [0.7, 0.7], "grid": None},
+        ground={"count": 150},
+        gt={"n_points": 20000},
+    ),
+}
