@@ -1,0 +1,90 @@
+"""`midview sfm`: reconstruct and georeference the aerial images (services/sfm)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def _fail(message: str) -> None:
+    typer.secho(message, fg="red", err=True)
+    raise typer.Exit(2)
+
+
+def resolve_inputs(
+    images: Path, pos: Path | None, cameras: Path | None
+) -> tuple[Path, Path | None, Path | None]:
+    """A synthetic scene folder (images/, pos.csv, cameras.json inside) stands for its parts."""
+    if (images / "images").is_dir() and not (images / "aerial").is_dir():
+        if pos is None and (images / "pos.csv").is_file():
+            pos = images / "pos.csv"
+        if cameras is None and (images / "cameras.json").is_file():
+            cameras = images / "cameras.json"
+        images = images / "images"
+    return images, pos, cameras
+
+
+def sfm(
+    images: Path = typer.Argument(
+        ...,
+        metavar="IMAGES",
+        help="images/ folder (aerial/ inside), a flat folder of aerial images, or a scene folder",
+    ),
+    out: Path = typer.Argument(
+        ..., metavar="OUT", help="output folder (sparse/, georef.json, report.json, ...)"
+    ),
+    pos: Path = typer.Option(
+        None, "--pos", help="POS file: .csv, .json or ODM geo.txt (default: the images' EXIF)"
+    ),
+    features: str = typer.Option("sift", "--features", help="sift, sift-fast or aliked"),
+    cameras: Path = typer.Option(
+        None, "--cameras", help="cameras.json with intrinsics per set (not refined)"
+    ),
+    max_image_size: int = typer.Option(
+        None, "--max-image-size", help="downscale images for SIFT to this side"
+    ),
+    exhaustive_max: int = typer.Option(
+        None, "--exhaustive-max", help="match exhaustively up to this many images"
+    ),
+    no_priors: bool = typer.Option(
+        False, "--no-priors", help="do not use POS positions in bundle adjustment"
+    ),
+) -> None:
+    """Aerial SfM: SIFT (or ALIKED) features, POS-guided matching, incremental mapping, georeferencing.
+
+    Writes OUT/sparse (COLMAP model in the local ENU frame), OUT/georef.json, OUT/report.json and
+    OUT/cameras.geojson (WGS84 camera positions and footprints).
+    """
+    from services.colmap_model import read_cameras_json
+    from services.pos import PosError
+    from services.sfm import GeorefError, SfmError, confs, main
+    from shared.images import ImageError
+
+    if features not in confs:
+        _fail(f"unknown --features {features!r}: use one of {', '.join(confs)}")
+    images, pos, cameras = resolve_inputs(images, pos, cameras)
+    conf = {**confs[features]}
+    if max_image_size is not None:
+        conf["features"] = {**conf["features"], "max_image_size": max_image_size}
+    if exhaustive_max is not None:
+        conf["matching"] = {**conf["matching"], "exhaustive_max": exhaustive_max}
+    if no_priors:
+        conf["mapping"] = {**conf["mapping"], "use_prior_position": False}
+    try:
+        cams = read_cameras_json(cameras) if cameras is not None else None
+        sparse = main(conf, images, out, pos, cams)
+    except (PosError, ImageError, SfmError, GeorefError, ValueError) as e:
+        _fail(str(e))
+    import json
+
+    report = json.loads((out / "report.json").read_text())
+    g = report["georef"]["residual_m"]
+    typer.echo(
+        f"NRI {report['NRI']}, N3P {report['num_points3D']}, reprojection error "
+        f"{report['mean_reprojection_error_px']:.2f} px, georef residual mean {g['mean']:.2f} m / "
+        f"max {g['max']:.2f} m"
+    )
+    for u in report["unregistered"]:
+        typer.echo(f"  not registered: {u['name']}: {u['reason']}")
+    typer.echo(f"wrote {sparse}, {out / 'georef.json'}, {out / 'report.json'}, {out / 'cameras.geojson'}")

@@ -1,0 +1,568 @@
+"""Aerial structure from motion: features, POS-guided matching, incremental mapping, georeferencing.
+
+Steps (each a `shared.logging.stage`), all in pycolmap 4 on one COLMAP database:
+
+1. images: the aerial images of an `images/` folder (`aerial/` inside) or of a flat folder (then
+   named `aerial/<file>` through a symlink `out/images/aerial`); every image is decoded once to catch
+   unreadable or truncated files; POS is checked against the images (both directions).
+2. features: SIFT (pycolmap, downscaled to `max_image_size`, keypoints at full resolution) into the
+   database, one camera for the set (intrinsics prior from cameras.json, else EXIF 35 mm focal length),
+   or ALIKED (services.features) imported into the database. The POS positions go in as pose priors in
+   a local ENU frame (LocalFrame at the mean POS position), with their covariance.
+3. matching: exhaustive up to `exhaustive_max` images, else the spatial neighbours of the pose priors;
+   geometric verification by pycolmap (LightGlue + pycolmap verification for ALIKED).
+4. mapping: pycolmap incremental mapping; with `use_prior_position` its bundle adjustment includes the
+   POS positions (robust loss), so the models come out in the ENU frame. The largest model is kept.
+5. georef: a robust similarity from its camera centres to the POS positions (georef.py), applied to
+   the model, with residuals per image.
+6. outputs: out/sparse (COLMAP model, local ENU), georef.json, report.json, cameras.geojson.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+from tqdm import tqdm
+
+from services.colmap_model import Camera
+from services.pos import (
+    LocalFrame,
+    PosRecord,
+    camera_from_exif,
+    check_against_images,
+    check_image,
+    image_paths,
+    match_names,
+    read_exif,
+    read_pos,
+    read_pos_exif,
+)
+from shared.config import get_settings
+from shared.images import ImageError
+from shared.logging import stage
+
+from . import georef as georef_mod
+from .geojson import write_geojson
+from .report import build_report, write_report
+
+logger = logging.getLogger("midview.sfm")
+
+_BASE: dict[str, Any] = {
+    "features": {"type": "sift", "max_image_size": 1600, "max_num_features": 8192, "chunk": 4},
+    "matching": {
+        "exhaustive_max": 50,  # images; more use spatial neighbours of the POS
+        "num_neighbors": 20,
+        "max_distance_m": 1.0e6,
+        "min_num_inliers": 15,
+        "max_num_matches": 32768,
+    },
+    "mapping": {
+        "use_prior_position": True,
+        "robust_prior": True,
+        "min_model_size": 3,
+        "seed": 0,
+        "refine_intrinsics": None,  # None: refine unless cameras.json gave them
+    },
+    "camera": {"model": "SIMPLE_RADIAL"},
+    "pos": {"default_std_xy": 3.0, "default_std_z": 5.0},  # metres, when the POS gives none (EXIF GPS)
+    "georef": dict(georef_mod.default_conf),
+    "verify_images": "decode",  # "decode" (every image decoded once), "header" or "none"
+    "colmap_log_level": 1,  # glog minloglevel while pycolmap runs: 0 info, 1 warnings, 2 errors
+}
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+    return out
+
+
+confs: dict[str, dict[str, Any]] = {
+    "sift": _merge(_BASE, {"output": "sfm-sift"}),
+    "sift-fast": _merge(
+        _BASE, {"output": "sfm-sift-fast", "features": {"max_image_size": 1024, "max_num_features": 4096}}
+    ),
+    "aliked": _merge(
+        _BASE,
+        {
+            "output": "sfm-aliked",
+            "features": {"type": "aliked", "conf": "aliked"},
+            "matching": {"matcher": {"name": "lightglue", "features": "aliked"}},
+        },
+    ),
+}
+
+
+class SfmError(RuntimeError):
+    """The reconstruction could not be made (no model, too few images)."""
+
+
+# -- helpers -----------------------------------------------------------------------------------
+@contextlib.contextmanager
+def colmap_log_level(level: int) -> Iterator[None]:
+    """Temporarily set pycolmap's glog minloglevel."""
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = level
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+def _num_threads() -> int:
+    return get_settings().num_threads or -1
+
+
+def prepare_images(
+    image_dir: str | Path, work_dir: str | Path, image_set: str = "aerial"
+) -> tuple[Path, list[str]]:
+    """(root, names) with root/name the image files of the set; a flat folder is linked as root/<set>."""
+    image_dir = Path(image_dir)
+    paths = image_paths(image_dir, flat_set=image_set)
+    names = [n for n in paths if n.split("/", 1)[0] == image_set]
+    if not names:
+        raise ImageError(f"{image_dir}: no {image_set} images")
+    if (image_dir / image_set).is_dir():
+        return image_dir, names
+    root = Path(work_dir) / "images"
+    root.mkdir(parents=True, exist_ok=True)
+    link = root / image_set
+    if link.is_symlink() or link.exists():
+        link.unlink()
+    link.symlink_to(image_dir.resolve(), target_is_directory=True)
+    return root, names
+
+
+def verify_images(root: Path, names: list[str], mode: str = "decode") -> dict[str, tuple[int, int]]:
+    """{name: (width, height)}; ImageError naming every unreadable or truncated image."""
+    if mode == "none":
+        return {}
+    sizes, errors = {}, []
+    for n in tqdm(names, desc="checking images", unit="img", leave=False):
+        try:
+            sizes[n] = check_image(root / n, decode=mode == "decode")
+        except ImageError as e:
+            errors.append(str(e))
+    if errors:
+        raise ImageError(f"{len(errors)} unusable image(s):\n  " + "\n  ".join(errors))
+    return sizes
+
+
+def select_records(
+    records: list[PosRecord], names: list[str], image_set: str = "aerial"
+) -> dict[str, PosRecord]:
+    """POS records of the set's images, keyed by name; PosError for images without POS or POS without image.
+
+    Records of other sets (e.g. ground rows of a scene's pos.csv) are ignored.
+    """
+    match_names(records, names)
+    mine = [r for r in records if r.image_set in (image_set, "")]
+    check_against_images(mine, names)
+    return {r.name: r for r in mine}
+
+
+def local_frame(records: dict[str, PosRecord]) -> LocalFrame:
+    """The ENU frame at the mean POS position."""
+    a = np.array([(r.lat, r.lon, r.h) for r in records.values()])
+    return LocalFrame(*(float(v) for v in a.mean(0)))
+
+
+def camera_prior(
+    cameras: dict[str, Camera] | None, root: Path, names: list[str], image_set: str
+) -> tuple[Camera | None, str]:
+    """Intrinsics prior of the set: cameras.json, else EXIF (35 mm focal length), else none."""
+    if cameras and image_set in cameras:
+        return cameras[image_set], "cameras.json"
+    try:
+        cam = camera_from_exif(read_exif(root / names[0]))
+    except ImageError:
+        cam = None
+    return (cam, "exif") if cam is not None else (None, "pycolmap default")
+
+
+# -- steps -------------------------------------------------------------------------------------
+def check_sizes(sizes: dict[str, tuple[int, int]], camera: Camera | None, source: str) -> bool:
+    """True when all images share one size; ValueError when a cameras.json camera does not fit them."""
+    distinct = sorted(set(sizes.values()))
+    if (
+        camera is not None
+        and source == "cameras.json"
+        and distinct
+        and distinct != [(camera.width, camera.height)]
+    ):
+        raise ValueError(
+            f"cameras.json: the camera is {camera.width}x{camera.height}, the images are "
+            + ", ".join(f"{w}x{h}" for w, h in distinct)
+        )
+    return len(distinct) <= 1
+
+
+def extract_sift(
+    conf: dict, db_path: Path, root: Path, names: list[str], camera: Camera | None, single_camera: bool = True
+) -> None:
+    """SIFT into the database, in chunks for progress; one camera for all images (or one per image)."""
+    fconf = conf["features"]
+    if not single_camera:
+        camera = None  # pycolmap derives each image's prior from its own EXIF
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera.model if camera else conf["camera"]["model"]
+    if camera is not None:
+        reader.camera_params = ",".join(f"{p:.10g}" for p in camera.params)
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.max_image_size = int(fconf["max_image_size"])
+    opts.num_threads = _num_threads()
+    opts.sift.max_num_features = int(fconf["max_num_features"])
+    chunk = max(1, int(fconf.get("chunk", 4)))
+    with tqdm(total=len(names), desc="SIFT", unit="img") as bar:
+        for i in range(0, len(names), chunk):
+            pycolmap.extract_features(
+                db_path,
+                root,
+                image_names=names[i : i + chunk],
+                camera_mode=pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE,
+                reader_options=reader,
+                extraction_options=opts,
+            )
+            if i == 0 and single_camera:  # later chunks reuse the camera of the first
+                reader.existing_camera_id = 1
+            bar.update(len(names[i : i + chunk]))
+
+
+def write_pose_priors(
+    db_path: Path, records: dict[str, PosRecord], frame: LocalFrame, std_xy: float, std_z: float
+) -> int:
+    """Replace the database's pose priors (pycolmap writes WGS84 ones from EXIF) by ENU positions."""
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        db.clear_pose_priors()
+        n = 0
+        for img in db.read_all_images():
+            r = records.get(img.name)
+            if r is None:
+                continue
+            sxy, sz = r.std_xy or std_xy, r.std_z or std_z
+            prior = pycolmap.PosePrior(
+                corr_data_id=img.data_id,
+                position=frame.from_wgs84(r.lat, r.lon, r.h)[0],
+                position_covariance=np.diag([sxy**2, sxy**2, sz**2]),
+                coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
+            )
+            db.write_pose_prior(prior)
+            n += 1
+    finally:
+        db.close()
+    return n
+
+
+def match_sift(conf: dict, db_path: Path, n_images: int) -> str:
+    """Exhaustive or spatial SIFT matching with pycolmap's geometric verification; returns the method."""
+    mconf = conf["matching"]
+    mopts = pycolmap.FeatureMatchingOptions()
+    mopts.num_threads = _num_threads()
+    mopts.max_num_matches = int(mconf["max_num_matches"])
+    vopts = pycolmap.TwoViewGeometryOptions()
+    vopts.min_num_inliers = int(mconf["min_num_inliers"])
+    if n_images <= mconf["exhaustive_max"]:
+        pycolmap.match_exhaustive(db_path, matching_options=mopts, verification_options=vopts)
+        return "exhaustive"
+    popts = pycolmap.SpatialPairingOptions()
+    popts.ignore_z = False
+    popts.max_num_neighbors = int(mconf["num_neighbors"])
+    popts.max_distance = float(mconf["max_distance_m"])
+    pycolmap.match_spatial(db_path, matching_options=mopts, pairing_options=popts, verification_options=vopts)
+    return f"spatial ({mconf['num_neighbors']} neighbours)"
+
+
+def candidate_pairs(names: list[str], positions: np.ndarray, conf: dict) -> list[tuple[int, int]]:
+    """Index pairs: all, or each image with its `num_neighbors` nearest POS positions."""
+    n = len(names)
+    if n <= conf["exhaustive_max"]:
+        return [(i, j) for i in range(n) for j in range(i + 1, n)]
+    d = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    pairs = set()
+    for i in range(n):
+        for j in np.argsort(d[i])[1 : conf["num_neighbors"] + 1]:
+            if d[i, j] <= conf["max_distance_m"]:
+                pairs.add((min(i, int(j)), max(i, int(j))))
+    return sorted(pairs)
+
+
+def features_aliked(
+    conf: dict, db_path: Path, root: Path, names: list[str], camera: Camera | None, positions: np.ndarray
+) -> str:
+    """ALIKED (services.features) + LightGlue into the database, then pycolmap's verification."""
+    from services import features as features_mod
+    from services.matching.direct import match_features
+
+    fconf = features_mod.confs[conf["features"]["conf"]]
+    feature_path = db_path.parent / f"{fconf['output']}.h5"
+    features_mod.main(fconf, root, names, feature_path)
+    feats = {n: features_mod.load_features(feature_path, n) for n in names}
+    w, h = (int(v) for v in feats[names[0]]["image_size"])
+    cam = camera or Camera(conf["camera"]["model"], w, h, [1.2 * max(w, h), w / 2, h / 2, 0.0])
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        pcam = cam.to_pycolmap(camera_id=0)
+        pcam.has_prior_focal_length = camera is not None
+        pcam.camera_id = db.write_camera(pcam)
+        rig = pycolmap.Rig()
+        rig.add_ref_sensor(pcam.sensor_id)
+        rig_id = db.write_rig(rig)
+        ids = []
+        for n in names:
+            image = pycolmap.Image(name=n, camera_id=pcam.camera_id)
+            image.image_id = db.write_image(image)
+            frame = pycolmap.Frame(rig_id=rig_id)
+            frame.add_data_id(image.data_id)
+            db.write_frame(frame)
+            db.write_keypoints(image.image_id, np.ascontiguousarray(feats[n]["keypoints"], np.float32))
+            ids.append(image.image_id)
+        pairs = candidate_pairs(names, positions, conf["matching"])
+        for i, j in tqdm(pairs, desc="LightGlue", unit="pair"):
+            m, _ = match_features(feats[names[i]], feats[names[j]], conf["matching"]["matcher"])
+            db.write_matches(ids[i], ids[j], np.ascontiguousarray(m, np.uint32).reshape(-1, 2))
+    finally:
+        db.close()
+    vopts = pycolmap.TwoViewGeometryOptions()
+    vopts.min_num_inliers = int(conf["matching"]["min_num_inliers"])
+    pycolmap.geometric_verification(db_path, two_view_geometry_options=vopts)
+    return f"lightglue {'exhaustive' if len(names) <= conf['matching']['exhaustive_max'] else 'spatial'}"
+
+
+def run_mapping(
+    conf: dict, db_path: Path, root: Path, out_dir: Path, n_images: int, refine_intrinsics: bool
+) -> dict[int, pycolmap.Reconstruction]:
+    """pycolmap incremental mapping into out_dir/<k>; a progress bar counts registered images."""
+    mconf = conf["mapping"]
+    o = pycolmap.IncrementalPipelineOptions()
+    o.num_threads = _num_threads()
+    o.random_seed = int(mconf["seed"])
+    o.mapper.random_seed = int(mconf["seed"])
+    o.min_model_size = min(int(mconf["min_model_size"]), n_images)
+    o.use_prior_position = bool(mconf["use_prior_position"])
+    o.use_robust_loss_on_prior_position = bool(mconf["robust_prior"])
+    o.ba_refine_focal_length = refine_intrinsics
+    o.ba_refine_extra_params = refine_intrinsics
+    o.mapper.abs_pose_refine_focal_length = refine_intrinsics
+    o.mapper.abs_pose_refine_extra_params = refine_intrinsics
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    out_dir.mkdir(parents=True)
+    with tqdm(total=n_images, desc="mapping", unit="img") as bar:
+
+        def registered() -> None:
+            bar.update(1) if bar.n < bar.total else None
+
+        models = pycolmap.incremental_mapping(
+            db_path,
+            root,
+            out_dir,
+            o,
+            initial_image_pair_callback=lambda: bar.update(2),
+            next_image_callback=registered,
+        )
+    return dict(models)
+
+
+def _database_stats(db_path: Path, min_inliers: int) -> dict:
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        _, counts = db.read_two_view_geometry_num_inliers()
+        return {
+            "num_keypoints": int(db.num_keypoints()),
+            "mean_keypoints": float(db.num_keypoints() / max(db.num_images(), 1)),
+            "num_matched_pairs": int(db.num_matched_image_pairs()),
+            "num_verified_pairs": int(sum(c >= min_inliers for c in counts)),
+        }
+    finally:
+        db.close()
+
+
+def _log_matching(db_path: Path, conf: dict, pairing: str, seconds: float) -> dict:
+    stats = _database_stats(db_path, conf["matching"]["min_num_inliers"])
+    logger.info(
+        "%s matching: %d verified of %d matched pairs in %.1f s",
+        pairing,
+        stats["num_verified_pairs"],
+        stats["num_matched_pairs"],
+        seconds,
+    )
+    return stats
+
+
+# -- main --------------------------------------------------------------------------------------
+def main(
+    conf: dict[str, Any],
+    image_dir: str | Path,
+    out_dir: str | Path,
+    pos_records: list[PosRecord] | str | Path | None = None,
+    cameras: dict[str, Camera] | None = None,
+    image_set: str = "aerial",
+) -> Path:
+    """Reconstruct and georeference the aerial images of `image_dir`; returns out_dir/sparse.
+
+    `pos_records`: records, or a POS file (any format of services.pos.read_pos); default: the EXIF of
+    the images. `cameras`: intrinsics per set (cameras.json); used as given (not refined).
+    """
+    conf = _merge(_BASE, conf)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    with stage("sfm:images", logger):
+        t0 = time.perf_counter()
+        root, names = prepare_images(image_dir, out_dir, image_set)
+        sizes = verify_images(root, names, conf["verify_images"])
+        if pos_records is None:
+            records, pos_source = read_pos_exif(root, names), "exif"
+        elif isinstance(pos_records, str | Path):
+            records, pos_source = read_pos(pos_records), str(pos_records)
+        else:
+            records, pos_source = list(pos_records), "records"
+        pos = select_records(records, names, image_set)
+        frame = local_frame(pos)
+        camera, cam_source = camera_prior(cameras, root, names, image_set)
+        single_camera = check_sizes(sizes, camera, cam_source)
+        if not single_camera:
+            logger.warning("the images differ in size: one camera per image, priors from their EXIF")
+            camera, cam_source = None, "exif per image"
+        timings["images"] = time.perf_counter() - t0
+        logger.info(
+            "%d %s images under %s, POS from %s, camera prior from %s; ENU origin %.7f %.7f %.2f",
+            len(names),
+            image_set,
+            root,
+            pos_source,
+            cam_source,
+            frame.lat0,
+            frame.lon0,
+            frame.h0,
+        )
+
+    db_path = out_dir / "database.db"
+    for p in (db_path, db_path.with_name(db_path.name + "-wal"), db_path.with_name(db_path.name + "-shm")):
+        p.unlink(missing_ok=True)
+    positions = np.array([frame.from_wgs84(pos[n].lat, pos[n].lon, pos[n].h)[0] for n in names])
+    std_xy, std_z = conf["pos"]["default_std_xy"], conf["pos"]["default_std_z"]
+    ftype = conf["features"]["type"]
+    with colmap_log_level(conf["colmap_log_level"]):
+        if ftype == "sift":
+            with stage("sfm:features", logger):
+                t0 = time.perf_counter()
+                extract_sift(conf, db_path, root, names, camera, single_camera)
+                write_pose_priors(db_path, pos, frame, std_xy, std_z)
+                timings["features"] = time.perf_counter() - t0
+                logger.info(
+                    "%d images, %.0f keypoints per image in %.1f s",
+                    len(names),
+                    _database_stats(db_path, 0)["mean_keypoints"],
+                    timings["features"],
+                )
+            with stage("sfm:matching", logger):
+                t0 = time.perf_counter()
+                pairing = match_sift(conf, db_path, len(names))
+                timings["matching"] = time.perf_counter() - t0
+                dbstats = _log_matching(db_path, conf, pairing, timings["matching"])
+        elif ftype == "aliked":
+            with stage("sfm:features+matching", logger):
+                t0 = time.perf_counter()
+                pairing = features_aliked(conf, db_path, root, names, camera, positions)
+                write_pose_priors(db_path, pos, frame, std_xy, std_z)
+                timings["features"] = timings["matching"] = (time.perf_counter() - t0) / 2
+                dbstats = _log_matching(db_path, conf, pairing, 2 * timings["matching"])
+        else:
+            raise ValueError(f"unknown feature type {ftype!r} (sift or aliked)")
+        with stage("sfm:mapping", logger):
+            t0 = time.perf_counter()
+            refine = conf["mapping"]["refine_intrinsics"]
+            refine = camera is None or cam_source != "cameras.json" if refine is None else bool(refine)
+            models = run_mapping(conf, db_path, root, out_dir / "models", len(names), refine)
+            timings["mapping"] = time.perf_counter() - t0
+            if not models:
+                raise SfmError(
+                    f"no model: {dbstats['num_verified_pairs']} verified pairs among {len(names)} images"
+                )
+            best = max(models, key=lambda k: models[k].num_reg_images())
+            rec = models[best]
+            logger.info(
+                "%d model(s); the largest registers %d/%d images, %d points in %.1f s",
+                len(models),
+                rec.num_reg_images(),
+                len(names),
+                rec.num_points3D(),
+                timings["mapping"],
+            )
+
+    with stage("sfm:georef", logger):
+        t0 = time.perf_counter()
+        sigma = float(np.median([pos[n].std_xy or std_xy for n in names]))
+        geo = georef_mod.georeference(rec, pos, frame, sigma, conf["georef"])
+        sparse = out_dir / "sparse"
+        if sparse.exists():
+            shutil.rmtree(sparse)
+        sparse.mkdir(parents=True)
+        rec.write(str(sparse))
+        georef_mod.write_georef(out_dir / "georef.json", geo, frame)
+        timings["georef"] = time.perf_counter() - t0
+        gsum = georef_mod.summary(geo)
+        if gsum["suspect"]:
+            logger.warning(
+                "only %d of %d cameras lie within %.1f m of their POS: the model or the POS is wrong",
+                gsum["num_inliers"],
+                gsum["num_images"],
+                geo.condition["max_error_m"],
+            )
+        logger.info(
+            "georeferenced by %s: residuals mean %.2f m, median %.2f m, max %.2f m (%d/%d inliers)",
+            geo.method,
+            gsum["residual_m"]["mean"],
+            gsum["residual_m"]["median"],
+            gsum["residual_m"]["max"],
+            gsum["num_inliers"],
+            gsum["num_images"],
+        )
+
+    with stage("sfm:report", logger):
+        residuals = {n: float(np.linalg.norm(v)) for n, v in geo.residuals.items()}
+        write_geojson(out_dir / "cameras.geojson", rec, frame, residuals)
+        timings["total"] = time.perf_counter() - t_all
+        report = build_report(
+            rec,
+            names,
+            db_path,
+            models,
+            best,
+            {**gsum, "method": geo.method, "condition": geo.condition},
+            timings,
+            extra={
+                "conf": conf.get("output", ftype),
+                "features": ftype,
+                "pairing": pairing,
+                "pos_source": pos_source,
+                "camera_prior": cam_source,
+                "frame": {"lat0": frame.lat0, "lon0": frame.lon0, "h0": frame.h0},
+                "database": dbstats,
+            },
+            min_inliers=conf["matching"]["min_num_inliers"],
+        )
+        write_report(out_dir / "report.json", report)
+        for u in report["unregistered"]:
+            logger.warning("not registered: %s (%s)", u["name"], u["reason"])
+        logger.info(
+            "NRI %s, N3P %d, reprojection error %.2f px -> %s",
+            report["NRI"],
+            report["num_points3D"],
+            report["mean_reprojection_error_px"],
+            sparse,
+        )
+    return sparse

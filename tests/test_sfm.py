@@ -1,0 +1,227 @@
+"""Aerial SfM: georeferencing, footprints, report reasons, inputs, and a small end-to-end run."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+import typer
+from PIL import Image
+from typer.testing import CliRunner
+
+from cli.sfm import sfm as sfm_command
+from services.pos import LocalFrame, PosError, PosRecord, write_pos_csv, ypr_to_matrix
+from services.sfm import GeorefError, confs, main
+from services.sfm.aerial import prepare_images, select_records, verify_images
+from services.sfm.geojson import camera_features, footprint
+from services.sfm.georef import condition, estimate
+from services.sfm.report import compare_with_truth, unregistered_reason
+from shared.images import ImageError
+
+HAS_SYNTH = importlib.util.find_spec("services.synth") is not None
+BRIGHTON = Path(__file__).resolve().parents[2] / "shared" / "data" / "brighton_beach" / "images"
+
+
+def _rot(axis_angle) -> np.ndarray:
+    return pycolmap.Rotation3d(np.asarray(axis_angle, float)).matrix()
+
+
+# -- georeferencing ----------------------------------------------------------------------------
+def test_georef_recovers_a_similarity_and_flags_outliers():
+    rng = np.random.default_rng(0)
+    tgt = np.c_[rng.uniform(-50, 50, (20, 2)), rng.normal(0, 0.3, 20)]  # one flight height: coplanar
+    R, s, t = _rot([0.1, -0.2, 1.2]), 0.05, np.array([3.0, -1.0, 7.0])
+    src = ((tgt - t) @ R) / s  # tgt = s R src + t
+    noisy = tgt + rng.normal(0, 0.2, tgt.shape)
+    noisy[3] += [15.0, 0.0, 0.0]  # one bad GPS fix
+    names = [f"aerial/{i}.jpg" for i in range(20)]
+    geo = estimate(names, src, noisy, sigma=0.3)
+    assert geo.scale == pytest.approx(s, rel=0.01)
+    assert np.degrees(np.arccos((np.trace(geo.R.T @ R) - 1) / 2)) < 0.5
+    assert geo.condition["coplanar"] and not geo.condition["ill_conditioned"]
+    assert not geo.inliers[names[3]] and sum(geo.inliers.values()) == 19
+    assert np.linalg.norm(geo.residuals[names[3]]) == pytest.approx(15.0, abs=1.0)
+
+
+def test_georef_collinear_centres_take_the_rotation_from_attitudes():
+    rng = np.random.default_rng(1)
+    n = 8
+    tgt = np.c_[np.linspace(0, 70, n), rng.normal(0, 0.05, n), rng.normal(40, 0.05, n)]  # one flight line
+    R, s, t = _rot([0.3, 0.2, -0.7]), 2.0, np.array([1.0, 2.0, 3.0])
+    src = ((tgt - t) @ R) / s
+    R_pos = [ypr_to_matrix(90 + rng.normal(0, 1), -90 + rng.normal(0, 1), 0) for _ in range(n)]
+    R_rec = [R.T @ Rp for Rp in R_pos]  # the reconstruction's R_world_from_cam in its own frame
+    R_pos_noisy = list(R_pos)
+    R_pos_noisy[2] = ypr_to_matrix(270, -90, 0)  # one attitude 180 degrees off
+    names = [f"aerial/{i}.jpg" for i in range(n)]
+    assert condition(tgt, 0.5)["collinear"]
+    geo = estimate(names, src, tgt, 0.5, R_rec, R_pos_noisy)
+    assert "attitudes" in geo.method and "7/8" in geo.method
+    assert np.degrees(np.arccos(np.clip((np.trace(geo.R.T @ R) - 1) / 2, -1, 1))) < 0.5
+    assert geo.attitude_deg[names[2]] > 170 and geo.attitude_deg[names[0]] < 0.5
+    without = estimate(names, src, tgt, 0.5)
+    assert "ill-conditioned" in without.method
+    with pytest.raises(GeorefError, match="needs 3"):
+        estimate(names[:2], src[:2], tgt[:2], 0.5)
+
+
+# -- footprints and GeoJSON --------------------------------------------------------------------
+def _nadir_reconstruction() -> pycolmap.Reconstruction:
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="PINHOLE", width=200, height=100, params=[100, 100, 100, 50], camera_id=1)
+    rec.add_camera_with_trivial_rig(cam)
+    R_wc = ypr_to_matrix(0, -90, 0)  # nadir, image top north
+    c = np.array([10.0, 20.0, 50.0])
+    img = pycolmap.Image(name="aerial/A.jpg", camera_id=1, image_id=1)
+    rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(pycolmap.Rotation3d(R_wc.T), -R_wc.T @ c))
+    return rec
+
+
+def test_footprint_of_a_nadir_camera():
+    rec = _nadir_reconstruction()
+    fp = footprint(rec.images[1], ground_z=0.0)
+    # 50 m above the ground, f = 100 px: 200 x 100 px cover 100 m (east) x 50 m (north)
+    np.testing.assert_allclose(fp[:, :2].min(0), [10 - 50, 20 - 25], atol=1e-9)
+    np.testing.assert_allclose(fp[:, :2].max(0), [10 + 50, 20 + 25], atol=1e-9)
+    np.testing.assert_allclose(fp[0, :2], [10 - 50, 20 + 25], atol=1e-9)  # top-left corner is north-west
+    assert footprint(rec.images[1], ground_z=60.0) is None  # the plane is behind the camera
+    frame = LocalFrame(46.84, -91.99, 200.0)
+    fc = camera_features(rec, frame, {"aerial/A.jpg": 0.3}, ground_z=0.0)
+    point, poly = fc["features"]
+    assert point["geometry"]["type"] == "Point" and point["properties"]["residual"] == 0.3
+    lon, lat, h = point["geometry"]["coordinates"]
+    np.testing.assert_allclose(frame.from_wgs84(lat, lon, h)[0], [10, 20, 50], atol=1e-6)
+    ring = np.array(poly["geometry"]["coordinates"][0])
+    assert len(ring) == 5 and np.all(ring[0] == ring[-1])
+    x, y = ring[:-1, 0], ring[:-1, 1]
+    assert np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0  # counter-clockwise (RFC 7946)
+    assert poly["properties"] | {"set": "aerial", "kind": "footprint"} == poly["properties"]
+
+
+def test_unregistered_reasons():
+    g = {
+        "a": {"keypoints": 0, "pairs": 0, "max_inliers": 0},
+        "b": {"keypoints": 900, "pairs": 0, "max_inliers": 0},
+        "c": {"keypoints": 900, "pairs": 2, "max_inliers": 40},
+    }
+    assert unregistered_reason("a", g, {}) == "no features detected"
+    assert "no geometrically verified image pair" in unregistered_reason("b", g, {})
+    assert "separate, smaller model #1" in unregistered_reason("c", g, {"c": 1})
+    assert "2 verified pairs, best 40 inliers" in unregistered_reason("c", g, {})
+    assert "not in the database" in unregistered_reason("z", g, {})
+
+
+# -- inputs ------------------------------------------------------------------------------------
+def _jpeg(path: Path, size=(32, 24)) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.full((size[1], size[0], 3), 128, np.uint8)).save(path)
+    return path
+
+
+def test_flat_and_nested_image_folders(tmp_path):
+    for n in ("b.jpg", "a.JPG"):
+        _jpeg(tmp_path / "flat" / n)
+    root, names = prepare_images(tmp_path / "flat", tmp_path / "out")
+    assert names == ["aerial/a.JPG", "aerial/b.jpg"] and root == tmp_path / "out" / "images"
+    assert (root / names[0]).is_file() and (root / "aerial").is_symlink()
+    root2, names2 = prepare_images(tmp_path / "flat", tmp_path / "out")  # again: the link is replaced
+    assert names2 == names
+    _jpeg(tmp_path / "images" / "aerial" / "x.jpg")
+    _jpeg(tmp_path / "images" / "ground" / "g.jpg")
+    root, names = prepare_images(tmp_path / "images", tmp_path / "out2")
+    assert root == tmp_path / "images" and names == ["aerial/x.jpg"]
+
+
+def test_bad_images_and_pos_are_named(tmp_path):
+    d = tmp_path / "images" / "aerial"
+    for n in ("a.jpg", "b.jpg", "c.jpg"):
+        _jpeg(d / n)
+    data = (d / "c.jpg").read_bytes()
+    (d / "c.jpg").write_bytes(data[: len(data) - 40])
+    with pytest.raises(ImageError, match=r"1 unusable image\(s\):\n.*c.jpg: truncated JPEG"):
+        verify_images(tmp_path / "images", ["aerial/a.jpg", "aerial/b.jpg", "aerial/c.jpg"])
+    recs = [
+        PosRecord("aerial/a.jpg", 55.0, 13.0, 50.0),
+        PosRecord("ground/g.jpg", 55.0, 13.0, 2.0),
+        PosRecord("aerial/z.jpg", 55.0, 13.0, 50.0),
+    ]
+    with pytest.raises(PosError) as e:
+        select_records(recs, ["aerial/a.jpg", "aerial/b.jpg"])
+    assert "image 'aerial/b.jpg' has no POS row" in str(e.value)
+    assert "POS row 'aerial/z.jpg' names no uploaded image" in str(e.value)
+    assert "ground/g.jpg" not in str(e.value)  # other sets are not the aerial SfM's business
+    # through the command: exit code 2 and the message
+    app = typer.Typer()
+    app.command("sfm")(sfm_command)
+    app.command("other")(lambda: None)
+    write_pos_csv(tmp_path / "pos.csv", recs[:1])
+    r = CliRunner().invoke(
+        app, ["sfm", str(tmp_path / "images"), str(tmp_path / "out"), "--pos", str(tmp_path / "pos.csv")]
+    )
+    assert r.exit_code == 2 and "c.jpg: truncated JPEG" in r.output
+
+
+# -- end to end --------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory) -> Path:
+    if not HAS_SYNTH:
+        pytest.skip("services.synth is not available")
+    from services.synth import confs as synth_confs
+    from services.synth import main as synth_main
+
+    return synth_main(synth_confs["tiny"], tmp_path_factory.mktemp("tiny") / "scene", seed=0)
+
+
+def test_sfm_on_the_tiny_synthetic_scene(tiny_scene, tmp_path):
+    """The tiny preset: two stations of one nadir and four outward obliques (-45 deg) each. The two nadir
+    images and the obliques facing each other's station register; the other obliques share too little
+    (seen from one station only) and the report says so."""
+    app = typer.Typer()
+    app.command("sfm")(sfm_command)
+    app.command("other")(lambda: None)
+    out = tmp_path / "sfm"
+    r = CliRunner().invoke(app, ["sfm", str(tiny_scene), str(out)])  # a scene folder: pos.csv, cameras.json
+    assert r.exit_code == 0, r.output
+    report = json.loads((out / "report.json").read_text())
+    registered = {im.name for im in pycolmap.Reconstruction(str(out / "sparse")).images.values()}
+    assert {"aerial/A0001.jpg", "aerial/A0006.jpg"} <= registered  # the nadir images
+    assert report["num_registered"] >= 4 and report["num_images"] == 10
+    assert len(report["unregistered"]) == 10 - report["num_registered"]
+    assert all(u["reason"] for u in report["unregistered"])
+    assert report["mean_reprojection_error_px"] < 1.0
+    g = report["georef"]
+    assert g["residual_m"]["max"] < 2.0 and g["attitude_deg"]["median"] < 3.0
+    truth = compare_with_truth(out, tiny_scene)
+    assert truth["absolute_m"]["max"] < 1.5  # POS noise: 0.5 m horizontal, 0.8 m vertical
+    assert truth["aligned_m"]["max"] < 0.3
+    geo = json.loads((out / "cameras.geojson").read_text())
+    assert sum(f["properties"]["kind"] == "camera" for f in geo["features"]) == report["num_registered"]
+    georef = json.loads((out / "georef.json").read_text())
+    assert (
+        set(georef["frame"]) >= {"lat0", "lon0", "h0"} and len(georef["images"]) == report["num_registered"]
+    )
+    assert set(report["timings_s"]) >= {"features", "matching", "mapping", "georef"}
+
+
+@pytest.mark.skipif(not BRIGHTON.is_dir(), reason=f"shared data absent: {BRIGHTON}")
+def test_sfm_on_downscaled_dji_images_with_exif(tmp_path):
+    """Six brighton_beach images (two flight lines) downscaled with their EXIF and XMP: POS from EXIF."""
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    for n in ("DJI_0019", "DJI_0020", "DJI_0021", "DJI_0032", "DJI_0033", "DJI_0034"):
+        with Image.open(BRIGHTON / f"{n}.JPG") as im:
+            xmp = (BRIGHTON / f"{n}.JPG").read_bytes()
+            i, j = xmp.find(b"<x:xmpmeta"), xmp.find(b"</x:xmpmeta>") + 12
+            im.resize((1000, 562)).save(flat / f"{n}.JPG", quality=90, exif=im.info["exif"], xmp=xmp[i:j])
+    conf = {**confs["sift"], "features": {**confs["sift"]["features"], "max_image_size": 1000}}
+    sparse = main(conf, flat, tmp_path / "out")
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["NRI"] == "6/6", report["unregistered"]
+    assert report["pos_source"] == "exif" and report["camera_prior"] == "exif"
+    assert report["georef"]["residual_m"]["max"] < 3.0
+    rec = pycolmap.Reconstruction(str(sparse))
+    assert {im.name for im in rec.images.values()} == {f"aerial/{p.name}" for p in flat.iterdir()}
