@@ -15,15 +15,15 @@ Stage = Literal[
 ]
 STAGES: tuple[str, ...] = get_args(Stage)  # in pipeline order
 
-# the Celery queue each stage runs on (workers on gpu/cpu/reduce queues)
+# the Celery queue each stage runs on: gpu (SfM, 3DGS, rendering), cpu (per-view matching), reduce
 STAGE_QUEUES: dict[str, str] = {
-    "aerial_sfm": "cpu",
+    "aerial_sfm": "gpu",
     "train_splat": "gpu",
-    "plan_views": "cpu",
+    "plan_views": "gpu",
     "render_views": "gpu",
-    "match_views": "gpu",
+    "match_views": "cpu",  # fanned out: one task per rendered view
     "reduce": "reduce",
-    "combined_sfm": "cpu",
+    "combined_sfm": "reduce",
 }
 
 # stages that need ground images (everything after the aerial-only part)
