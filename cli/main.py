@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from cli import evaluate, match, pos, sfm, synth
+from cli import evaluate, match, pos, sfm, splat, synth
 from shared.config import get_settings
 from shared.logging import setup_logging
 
@@ -30,6 +30,7 @@ app.command("sfm")(sfm.sfm)
 app.add_typer(evaluate.app, name="eval")
 app.add_typer(match.app, name="match")
 app.add_typer(pos.app, name="pos")
+app.add_typer(splat.app, name="splat")
 
 if __name__ == "__main__":
     app()

@@ -20,6 +20,9 @@ COMMANDS = [
     ["match", "export"],
     ["pos"],
     ["pos", "check"],
+    ["splat"],
+    ["splat", "train"],
+    ["splat", "render"],
 ]
 
 
