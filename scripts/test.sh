@@ -5,6 +5,12 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 VENV=${MIDVIEW_VENV:-.venv}
 "$VENV/bin/ruff" check .
+# the compose file is validated by tests/test_deploy.py with Debian's docker-compose (no engine needed)
+if ! command -v docker-compose >/dev/null && command -v apt-get >/dev/null; then
+  (apt-get install -y -qq docker-compose >/dev/null 2>&1 \
+    || (apt-get update -qq && apt-get install -y -qq docker-compose >/dev/null 2>&1)) \
+    || echo "test: docker-compose could not be installed; the compose check will be skipped"
+fi
 set +e
 "$VENV/bin/python" -m pytest -ra "$@"
 rc=$?
