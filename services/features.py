@@ -192,6 +192,17 @@ def _open_cache(conf: dict[str, Any], feature_path: Path) -> h5py.File:
     return h5
 
 
+def _all_cached(conf: dict[str, Any], feature_path: Path, image_dir: Path, names: list[str]) -> bool:
+    """Whether every image is in the cache, extracted with this conf from the same file."""
+    if not feature_path.is_file():
+        return False
+    with h5py.File(feature_path, "r") as h5:
+        if h5.attrs.get("conf") != _conf_json(conf):
+            return False
+        paths = {n: image_dir / n for n in names}
+        return all(p.is_file() and _is_cached(h5, n, _stamp(p)) for n, p in paths.items())
+
+
 def main(
     conf: dict[str, Any],
     image_dir: str | Path,
@@ -205,6 +216,10 @@ def main(
     names = list(names) if names is not None else list_images(image_dir)
     feature_path = Path(feature_path or image_dir.parent / "features" / f"{conf['output']}.h5")
     with stage(f"features:{conf['output']}", logger):
+        if not overwrite and _all_cached(conf, feature_path, image_dir, names):
+            # opening the cache for writing would touch it and make every consumer look out of date
+            logger.info("%d images, all cached -> %s", len(set(names)), feature_path)
+            return feature_path
         h5 = _open_cache(conf, feature_path)
         try:
             todo = []

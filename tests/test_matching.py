@@ -102,7 +102,9 @@ def test_features_cached(scene, tmp_path, monkeypatch):
         raise AssertionError("cached image extracted again")
 
     monkeypatch.setattr(features, "extract", fail)
+    before = path.stat().st_mtime_ns
     features.main(features.confs["sift"], scene / "images", names, path)  # all cached: no extraction
+    assert path.stat().st_mtime_ns == before  # untouched, so stages reading it stay up to date
     np.testing.assert_array_equal(features.load_features(path, "aerial/A1.jpg")["keypoints"], f["keypoints"])
 
 
