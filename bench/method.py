@@ -1,0 +1,354 @@
+"""midview against the direct baselines on a rendered synthetic survey (default: the `small` preset).
+
+    python bench/method.py [--preset small] [--seed 0] [--renderers gt,splat]
+                           [--planners paper,ground-aware,both] [--views 2] [--max-keypoints 1024]
+                           [--splat-steps 1500] [--adopt-sfm DIR] [--adopt-splat DIR] [--out DIR]
+
+One aerial SfM (and one 3DGS model) is shared by every configuration: a base job runs aerial_sfm and
+train_splat, and one job per (renderer, planner) links to it and runs plan_views .. combined_sfm (the
+"both" planner reuses the matches of the two others: they are the same views). The renderers: "splat"
+(the product: the 3DGS model) and "gt" (the ground-truth ray caster: the upper bound a perfect 3DGS
+would reach). Baselines: direct ALIKED+LightGlue on the POS pairs with the same features (keypoint budget)
+as midview, and, when bench/baselines.py has been run on the scene, its SIFT and ALIKED+LightGlue (2048
+keypoints) match files. Everything is evaluated on the co-visible pairs of the ground truth (GT-correct:
+within 3 px through the true depth), the combined reconstructions with `evaluate_sfm`, and the PnP
+ground-camera poses of the reducer against the true camera centres.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+
+from services import pipeline  # noqa: E402
+from shared.logging import setup_logging  # noqa: E402
+
+logger = logging.getLogger("midview.bench.method")
+
+DEFAULT_TEXTURES = ROOT.parent / "shared" / "data" / "lund_street"
+SCENE_FILES = (
+    "images",
+    "pos.csv",
+    "cameras.json",
+    "gt/sparse",
+    "gt/depth.h5",
+    "gt/covisible.csv",
+    "gt/scene.json",
+)
+SHARED = ("sfm", "splat", "features")  # stage folders of the base job, linked into every configuration
+
+
+def ensure_scene(preset: str, seed: int, scene: Path, textures: Path | None) -> Path:
+    if all((scene / f).exists() for f in SCENE_FILES):
+        return scene
+    from services import synth
+
+    logger.info("rendering preset %s (seed %d) into %s", preset, seed, scene)
+    synth.main(synth.confs[preset], scene, seed=seed, textures_dir=textures, overwrite=True)
+    return scene
+
+
+def make_job(root: Path, scene: Path, options: dict, settings: dict) -> pipeline.Job:
+    return pipeline.Job.create(
+        root,
+        scene / "images" / "aerial",
+        scene / "images" / "ground",
+        scene / "pos.csv",
+        scene / "cameras.json",
+        options=options,
+        settings=settings,
+    )
+
+
+def link_base(job: pipeline.Job, base: pipeline.Job) -> None:
+    """Share the base job's aerial SfM, 3DGS model and feature cache (links), and its stage markers."""
+    for d in SHARED:
+        src, dst = base.dir(d), job.dir(d)
+        src.mkdir(parents=True, exist_ok=True)
+        if dst.is_symlink():
+            continue
+        if dst.exists():
+            shutil.rmtree(dst)
+        dst.symlink_to(src.resolve(), target_is_directory=True)
+    if base.cameras.exists():
+        shutil.copy2(base.cameras, job.cameras)
+    job.stages_dir.mkdir(parents=True, exist_ok=True)
+    for s in ("aerial_sfm", "train_splat"):
+        m = pipeline.marker_path(base, s)
+        if m.exists():
+            shutil.copy2(m, pipeline.marker_path(job, s))
+
+
+def seed_matches(job: pipeline.Job, others: list[pipeline.Job]) -> None:
+    """Copy the per-view match files of other configurations (same views: match_view skips them)."""
+    job.dir("matches").mkdir(parents=True, exist_ok=True)
+    for o in others:
+        for p in sorted(o.dir("matches").glob("*.h5")):
+            dst = job.dir("matches") / p.name
+            if not dst.exists():
+                shutil.copy2(p, dst)
+
+
+def truth_alignment(scene: Path, sparse: Path) -> tuple[float, np.ndarray, np.ndarray]:
+    """truth_from_model similarity fitted on the aerial camera centres."""
+    from services.colmap_model import read_model
+    from services.views import _kabsch
+
+    _, est = read_model(sparse)
+    _, gt = read_model(scene / "gt" / "sparse")
+    names = sorted(n for n in est if n in gt and n.startswith("aerial/"))
+    return _kabsch(np.array([est[n].center for n in names]), np.array([gt[n].center for n in names]), True)
+
+
+def pnp_accuracy(scene: Path, job: pipeline.Job) -> dict:
+    """The reducer's accepted ground poses against the true centres (model frame aligned to the truth)."""
+    from services.colmap_model import read_model
+
+    s, R, t = truth_alignment(scene, job.dir("sfm") / "sparse")
+    _, gt = read_model(scene / "gt" / "sparse")
+    doc = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
+    errs = []
+    for g, r in doc.items():
+        if r.get("accepted") and g in gt:
+            c = s * R @ np.asarray(r["center"], float) + t
+            errs.append(float(np.linalg.norm(c - gt[g].center)))
+    n_ground = sum(n.startswith("ground/") for n in gt)
+    return {
+        "accepted": f"{len(errs)}/{n_ground}",
+        "mean_m": float(np.mean(errs)) if errs else None,
+        "median_m": float(np.median(errs)) if errs else None,
+        "max_m": float(np.max(errs)) if errs else None,
+    }
+
+
+def direct_same_budget(scene: Path, base: pipeline.Job, out: Path) -> Path:
+    """Direct ALIKED+LightGlue on the POS pairs with midview's features (its keypoint budget)."""
+    from services import pairs as pairs_mod
+    from services.matching import direct
+    from services.matching.views import feature_conf
+    from shared.images import list_images
+
+    path = out / "direct-aliked-lightglue-same-budget.h5"
+    if path.exists():
+        return path
+    names = list_images(scene / "images")
+    pairs = pairs_mod.get_pairs(pairs_mod.confs["pos"], names, scene / "pos.csv", scene / "cameras.json")
+    fconf = feature_conf(base.match_conf())
+    conf = {**direct.confs["aliked-lightglue"], "name": "direct-alg-same-budget", "features": fconf}
+    cache = out / "direct-features"
+    cache.mkdir(parents=True, exist_ok=True)
+    shared = base.features_path
+    if shared.exists() and not (cache / shared.name).exists():
+        shutil.copy2(shared, cache / shared.name)  # reuse midview's cached features, extract the rest
+    tmp = path.with_suffix(".tmp.h5")
+    direct.main(conf, scene, pairs, tmp, cache)
+    tmp.replace(path)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--preset", default="small")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--scene", type=Path, help="a rendered scene folder (default: runs/bench/scene-<preset>-seed<seed>)"
+    )
+    ap.add_argument("--renderers", default="gt,splat", help="comma-separated: gt, splat")
+    ap.add_argument(
+        "--planners", default="paper,ground-aware,both", help="comma-separated: paper, ground-aware, both"
+    )
+    ap.add_argument("--views", type=int, default=2, help="views per ground image")
+    ap.add_argument("--max-keypoints", type=int, default=1024)
+    ap.add_argument("--splat-steps", type=int, default=1500)
+    ap.add_argument("--splat-max-width", type=int, default=400)
+    ap.add_argument("--torch-threads", type=int, default=1)
+    ap.add_argument("--no-sfm", action="store_true", help="skip the combined reconstructions")
+    ap.add_argument("--adopt-sfm", type=Path, help="an aerial SfM output folder to use instead of running it")
+    ap.add_argument("--adopt-splat", type=Path, help="a 3DGS training folder (trained on --adopt-sfm) to use")
+    ap.add_argument("--out", type=Path, help="output folder (default: runs/bench/method-<preset>-seed<seed>)")
+    args = ap.parse_args(argv)
+    setup_logging("INFO")
+    from rich.console import Console
+    from rich.table import Table
+
+    from services.evaluation import evaluate_matches, evaluate_sfm, print_summary_table
+
+    console = Console(width=None if sys.stdout.isatty() else 150)
+    tag = f"{args.preset}-seed{args.seed}"
+    scene = args.scene or ROOT / "runs" / "bench" / f"scene-{tag}"
+    out = args.out or ROOT / "runs" / "bench" / f"method-{tag}"
+    out.mkdir(parents=True, exist_ok=True)
+    textures = DEFAULT_TEXTURES if DEFAULT_TEXTURES.is_dir() else None
+    ensure_scene(args.preset, args.seed, scene, textures)
+    renderers = [r.strip() for r in args.renderers.split(",") if r.strip()]
+    planners = [p.strip() for p in args.planners.split(",") if p.strip()]
+    planners = [p for p in ("paper", "ground-aware", "both") if p in planners]  # "both" last
+    options = {
+        "views_per_ground_image": args.views,
+        "max_keypoints": args.max_keypoints,
+        "splat_steps": args.splat_steps,
+        "splat_max_width": args.splat_max_width,
+        "seed": args.seed,
+    }
+    # the aerial SfM of services.sfm.confs["sift-fast"] (SIFT at 1024 px, exhaustive matching)
+    settings = {
+        "torch_threads": args.torch_threads,
+        "scene": str(scene),
+        "sfm": {"output": "sfm-sift-fast", "features": {"max_image_size": 1024, "max_num_features": 4096}},
+    }
+    timings: dict[str, float] = {}
+    # the base job: aerial SfM (+ 3DGS)
+    t0 = time.perf_counter()
+    base = make_job(
+        out / "base",
+        scene,
+        {**options, "stages": ["aerial_sfm", "train_splat"]},
+        {**settings, "renderer": "splat" if "splat" in renderers else "gt"},
+    )
+    if args.adopt_sfm and not pipeline.is_done(base, "aerial_sfm"):
+        dst = base.dir("sfm")
+        shutil.rmtree(dst, ignore_errors=True)
+        shutil.copytree(args.adopt_sfm, dst, symlinks=True)
+        pipeline.write_job_cameras(base)
+        pipeline.mark_done(base, "aerial_sfm", {"from": str(args.adopt_sfm)})
+    if args.adopt_splat and not pipeline.is_done(base, "train_splat"):
+        dst = base.dir("splat")
+        shutil.rmtree(dst, ignore_errors=True)
+        shutil.copytree(args.adopt_splat, dst)
+        pipeline.mark_done(base, "train_splat", {"from": str(args.adopt_splat)})
+    res = pipeline.run(base, progress=lambda s, f, m: logger.info("[%s] %3.0f%% %s", s, 100 * f, m))
+    timings["base"] = time.perf_counter() - t0
+    for s, r in res.items():
+        timings[f"base:{s}"] = float(r.get("seconds", 0.0))
+    jobs: dict[tuple[str, str], pipeline.Job] = {}
+    stages = ["plan_views", "render_views", "match_views", "reduce"] + (
+        [] if args.no_sfm else ["combined_sfm"]
+    )
+    for r in renderers:
+        for p in planners:
+            name = f"{r}-{p}"
+            job = make_job(
+                out / name,
+                scene,
+                {**options, "view_planner": p, "stages": ["aerial_sfm", "train_splat", *stages]},
+                {**settings, "renderer": r},
+            )
+            link_base(job, base)
+            if p == "both":
+                seed_matches(job, [jobs[(r, q)] for q in ("paper", "ground-aware") if (r, q) in jobs])
+            t0 = time.perf_counter()
+            res = pipeline.run(
+                job,
+                stages=stages,
+                progress=lambda s, f, m, n=name: logger.info("[%s %s] %3.0f%% %s", n, s, 100 * f, m),
+            )
+            timings[name] = time.perf_counter() - t0
+            for s, rr in res.items():
+                timings[f"{name}:{s}"] = float(rr.get("seconds", 0.0)) if not rr.get("skipped") else 0.0
+            jobs[(r, p)] = job
+    # baselines
+    files: dict[str, Path] = {}
+    bl = ROOT / "runs" / "bench" / f"baselines-{tag}"
+    for label, f in (
+        ("direct SIFT (8192, 1600 px)", "sift.h5"),
+        ("direct ALIKED+LightGlue (2048)", "aliked-lightglue.h5"),
+    ):
+        if (bl / f).exists():
+            files[label] = bl / f
+    t0 = time.perf_counter()
+    files[f"direct ALIKED+LightGlue ({args.max_keypoints})"] = direct_same_budget(scene, base, out)
+    timings["direct same budget"] = time.perf_counter() - t0
+    for (r, p), job in jobs.items():
+        files[f"midview {r} {p}"] = job.dir("transfer") / "matches.h5"
+    rows = []
+    for label, path in files.items():
+        s = evaluate_matches(
+            scene, path, out / "eval" / label.replace(" ", "_").replace("(", "").replace(")", "")
+        )
+        s["method"] = label
+        rows.append(s)
+    print_summary_table(
+        rows, title=f"Aerial-ground matches, {args.preset} (means over the co-visible pairs)", console=console
+    )
+    sfm_rows = {}
+    table = Table(
+        title="Ground cameras: PnP poses of the reducer and the combined reconstruction (errors in m)"
+    )
+    for col in (
+        "config",
+        "views",
+        "PnP accepted",
+        "PnP err mean",
+        "PnP err max",
+        "NRI aerial",
+        "NRI ground",
+        "ground pos err mean",
+        "max",
+        "N3P",
+    ):
+        table.add_column(col, justify="left" if col == "config" else "right")
+    for (r, p), job in jobs.items():
+        pa = pnp_accuracy(scene, job)
+        nv = len(json.loads((job.dir("views") / "views.json").read_text())["views"])
+        row = {"pnp": pa, "num_views": nv}
+        cells = [f"{r} {p}", str(nv), pa["accepted"], _f(pa["mean_m"]), _f(pa["max_m"])]
+        if not args.no_sfm:
+            ev = evaluate_sfm(scene, job.dir("combined") / "sparse", out / "eval" / f"sfm-{r}-{p}")
+            ps = ev["per_set"]
+            row["sfm"] = ev
+            cells += [
+                f"{ps['aerial']['num_registered']}/{ps['aerial']['num_gt']}",
+                f"{ps['ground']['num_registered']}/{ps['ground']['num_gt']}",
+                _f(ps["ground"]["position_error"]["mean"]),
+                _f(ps["ground"]["position_error"]["max"]),
+                str(ev["num_points3D"]),
+            ]
+        else:
+            cells += ["-"] * 5
+        table.add_row(*cells)
+        sfm_rows[f"{r} {p}"] = row
+    console.print(table)
+    ref = next((s for s in rows if s["method"].startswith("direct ALIKED+LightGlue (2048")), None)
+    if ref is not None:
+        for s in rows:
+            if s["method"].startswith("midview"):
+                console.print(
+                    f"{s['method']}: GT-correct {s['total_gt_correct']} = "
+                    f"{s['total_gt_correct'] / max(ref['total_gt_correct'], 1):.2f} x "
+                    "direct ALIKED+LightGlue (2048); "
+                    f"pooled precision {s['pooled_precision']:.3f}; NMP {s['nmp']} vs {ref['nmp']}"
+                )
+    console.print("timings (s): " + json.dumps({k: round(v, 1) for k, v in timings.items()}))
+    (out / "method.json").write_text(
+        json.dumps(
+            {
+                "scene": str(scene),
+                "options": options,
+                "matches": rows,
+                "cameras": sfm_rows,
+                "timings": timings,
+            },
+            indent=1,
+            default=str,
+        )
+    )
+    console.print(f"report: {out / 'method.json'}")
+    return 0
+
+
+def _f(v) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,518 @@
+"""`midview run` (the whole pipeline on a survey, in-process, each stage cached in the job folder) and
+`midview demo` (a synthetic survey, the pipeline, the direct baselines, one table and report.html).
+
+Register in cli/main.py:
+
+    from cli import run as run_cli
+    app.command("run")(run_cli.run)
+    app.command("demo")(run_cli.demo)
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import typer
+
+from shared.job_options import STAGES
+
+logger = logging.getLogger("midview.cli.run")
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_TEXTURES = ROOT.parent / "shared" / "data" / "lund_street"
+
+# demo settings: chosen so that the `small` preset finishes within 20 minutes on 2 CPU cores
+DEMO_OPTIONS = {
+    "sfm_features": "sift",
+    "matcher": "aliked-lightglue",
+    "view_planner": "paper",  # the best single planner (bench/method.py); "both" is better, twice the views
+    "views_per_ground_image": 2,
+    "splat_steps": 1200,
+    "splat_max_width": 400,
+    "max_keypoints": 1024,
+    "seed": 0,
+}
+DEMO_SETTINGS = {
+    "torch_threads": 1,
+    "splat": {"strategy": {"max_gaussians": 60_000}},  # CPU training: cap the model size
+    # a quicker aerial SfM: SIFT at 1024 px, spatial matching of 12 neighbours
+    "sfm": {
+        "features": {"max_image_size": 1024, "max_num_features": 4096},
+        "matching": {"exhaustive_max": 0, "num_neighbors": 12},
+    },
+}
+
+
+def _fail(message: str) -> None:
+    typer.secho(message, fg="red", err=True)
+    raise typer.Exit(2)
+
+
+class RichProgress:
+    """progress(stage, fraction, message) as a rich progress display, one bar per stage."""
+
+    def __init__(self, stages: list[str]):
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.progress = Progress(
+            TextColumn("{task.fields[stage]:<13}"),
+            BarColumn(),
+            TextColumn("{task.percentage:>3.0f}%"),
+            TimeElapsedColumn(),
+            TextColumn("{task.description}"),
+        )
+        self.tasks = {s: self.progress.add_task("", total=1.0, stage=s, start=False) for s in stages}
+
+    def __enter__(self) -> RichProgress:
+        self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.progress.__exit__(*exc)
+
+    def __call__(self, stage: str, fraction: float, message: str) -> None:
+        t = self.tasks.get(stage)
+        if t is None:
+            return
+        if not self.progress.tasks[t].started:
+            self.progress.start_task(t)
+        self.progress.update(t, completed=fraction, description=message[:60])
+        if fraction >= 1.0:
+            self.progress.stop_task(t)
+
+
+def run_job(job, stages: list[str] | None = None, from_stage: str | None = None, force: bool = False) -> dict:
+    """Run a job's stages with a rich progress display; returns {stage: marker}."""
+    from services import pipeline
+
+    todo = stages or job.options.stages_from(from_stage)
+    with RichProgress(list(todo)) as prog:
+        return pipeline.run(job, stages=stages, from_stage=from_stage, progress=prog, force=force)
+
+
+def run(
+    aerial: Path = typer.Argument(..., help="folder of aerial images"),
+    ground: Path = typer.Argument(..., help="folder of ground images"),
+    pos: Path = typer.Argument(
+        ..., help="POS file (docs/formats.md) naming aerial/... and ground/... images"
+    ),
+    out: Path = typer.Argument(..., help="job folder (created; a rerun skips finished stages)"),
+    cameras: Path | None = typer.Option(None, "--cameras", help="cameras.json (intrinsics per set)"),
+    view_planner: str = typer.Option("both", help="paper, ground-aware or both (both: best, most views)"),
+    views_per_ground_image: int = typer.Option(2, help="intermediate views per ground image"),
+    matcher: str = typer.Option("aliked-lightglue", help="aliked-lightglue or sift"),
+    sfm_features: str = typer.Option("sift", help="aerial SfM features: sift or aliked"),
+    splat_steps: int = typer.Option(3000, help="3DGS training steps"),
+    splat_max_width: int = typer.Option(400, help="3DGS training image width"),
+    max_keypoints: int = typer.Option(1024, help="keypoints per image for matching"),
+    seed: int = typer.Option(0, help="random seed"),
+    stages: str | None = typer.Option(None, help="comma-separated stages to run (default: all)"),
+    from_stage: str | None = typer.Option(None, "--from", help="rerun from this stage on"),
+    force: bool = typer.Option(False, help="rerun the --from stage (or every stage) even if up to date"),
+    renderer: str = typer.Option("splat", help="splat (3DGS) or gt (ground truth of --scene: benchmarks)"),
+    scene: Path | None = typer.Option(None, help="synthetic scene folder, for --renderer gt"),
+    torch_threads: int | None = typer.Option(None, help="torch threads (1 is fastest on a busy machine)"),
+) -> None:
+    """Register ground images with aerial images through rendered intermediate views: aerial SfM, 3DGS,
+    view planning and rendering, matching, transfer (OUT/transfer/matches.h5, database.db,
+    ground_poses.json) and the combined reconstruction (OUT/combined/sparse, report.json)."""
+    from pydantic import ValidationError
+
+    from services import pipeline
+
+    stage_list = [s.strip() for s in stages.split(",")] if stages else list(STAGES)
+    bad = [s for s in stage_list + ([from_stage] if from_stage else []) if s not in STAGES]
+    if bad:
+        _fail(f"unknown stage(s) {bad}: stages are {', '.join(STAGES)}")
+    if renderer == "gt" and scene is None:
+        _fail("--renderer gt needs --scene (a synthetic scene folder)")
+    try:
+        job = pipeline.Job.create(
+            out,
+            aerial,
+            ground,
+            pos,
+            cameras,
+            options={
+                "stages": stage_list,
+                "sfm_features": sfm_features,
+                "matcher": matcher,
+                "view_planner": view_planner,
+                "views_per_ground_image": views_per_ground_image,
+                "splat_steps": splat_steps,
+                "splat_max_width": splat_max_width,
+                "max_keypoints": max_keypoints,
+                "seed": seed,
+            },
+            settings={
+                "renderer": renderer,
+                "scene": str(scene) if scene else None,
+                "torch_threads": torch_threads,
+            },
+        )
+    except (FileNotFoundError, ValidationError) as e:
+        _fail(str(e))
+    t0 = time.perf_counter()
+    results = run_job(job, from_stage=from_stage, force=force)
+    typer.echo(
+        f"{out}: {sum(not r['skipped'] for r in results.values())} stage(s) run, "
+        f"{sum(r['skipped'] for r in results.values())} up to date, {time.perf_counter() - t0:.0f} s"
+    )
+    if "combined_sfm" in results:
+        rep = json.loads((job.dir("combined") / "report.json").read_text())
+        typer.echo(
+            f"combined model: NRI aerial {rep['NRI']['aerial']}, ground {rep['NRI']['ground']}, "
+            f"N3P {rep['num_points3D']} -> {job.dir('combined') / 'sparse'}"
+        )
+
+
+# -- demo ------------------------------------------------------------------------------------------
+def scene_complete(scene: Path) -> bool:
+    files = (
+        "images",
+        "pos.csv",
+        "cameras.json",
+        "gt/sparse",
+        "gt/depth.h5",
+        "gt/covisible.csv",
+        "gt/scene.json",
+    )
+    return all((scene / f).exists() for f in files)
+
+
+def baseline_reconstruction(job, label: str, match_file: Path, match_conf: dict, out_dir: Path) -> Path:
+    """The combined reconstruction with a direct baseline's matches, by the same procedure as midview's:
+    PnP seeds from its matches (aerial keypoints lifted with the aerial model's points), then
+    services.combined_sfm. Returns the model folder."""
+    from services import combined_sfm, transfer
+    from services.matching.views import feature_conf
+
+    tdir = out_dir / f"{match_file.stem}-pnp"
+    transfer.localize_direct(
+        job.transfer_conf(),
+        match_file,
+        job.dir("sfm") / "sparse",
+        job.pos,
+        job.cameras,
+        job.dir("sfm") / "georef.json",
+        tdir,
+    )
+    fpath = out_dir / "features" / f"{feature_conf(match_conf)['output']}.h5"
+    return combined_sfm.main(
+        job.combined_conf(),
+        job.dir("sfm"),
+        tdir,
+        fpath,
+        match_conf,
+        job.image_dir,
+        job.pos,
+        job.cameras,
+        out_dir / f"{match_file.stem}-combined",
+    )
+
+
+def direct_baselines(job, scene: Path, out_dir: Path, sift_conf: dict | None = None) -> dict[str, tuple]:
+    """Direct SIFT and ALIKED+LightGlue on the POS pairs; ALIKED reuses the job's feature cache.
+    Returns {label: (match file, matching conf)}."""
+    from services import pairs as pairs_mod
+    from services.matching import direct
+    from services.matching.views import feature_conf
+    from shared.images import list_images
+
+    names = list_images(scene / "images")
+    pairs = pairs_mod.get_pairs(pairs_mod.confs["pos"], names, scene / "pos.csv", scene / "cameras.json")
+    out = {}
+    sift = {**direct.confs["sift"], "name": "direct-sift", **(sift_conf or {})}
+    out["direct SIFT"] = (
+        direct.main(sift, scene, pairs, out_dir / "direct-sift.h5", out_dir / "features"),
+        sift,
+    )
+    alg = {
+        **direct.confs["aliked-lightglue"],
+        "name": "direct-aliked-lightglue",
+        "features": feature_conf(job.match_conf()),
+    }
+    # a copy of the job's feature cache: its features are reused, the job's cache stays as it was
+    cache = out_dir / "features"
+    cache.mkdir(parents=True, exist_ok=True)
+    if job.features_path.exists() and not (cache / job.features_path.name).exists():
+        shutil.copy2(job.features_path, cache / job.features_path.name)
+    out["direct ALIKED+LightGlue"] = (direct.main(alg, scene, pairs, out_dir / "direct-alg.h5", cache), alg)
+    return out
+
+
+def demo(
+    out: Path = typer.Argument(Path("runs/demo"), help="output folder (scene/, job/, report.html)"),
+    preset: str = typer.Option("small", help="synthetic preset: tiny, small"),
+    seed: int = typer.Option(0, help="random seed of the scene and the job"),
+    textures: Path | None = typer.Option(
+        None, help=f"facade photos (default: {DEFAULT_TEXTURES} if present)"
+    ),
+    renderer: str = typer.Option("splat", help="splat (3DGS) or gt (the ground-truth upper bound)"),
+    view_planner: str = typer.Option(DEMO_OPTIONS["view_planner"], help="paper, ground-aware or both"),
+    views_per_ground_image: int = typer.Option(DEMO_OPTIONS["views_per_ground_image"]),
+    splat_steps: int = typer.Option(DEMO_OPTIONS["splat_steps"]),
+    max_keypoints: int = typer.Option(DEMO_OPTIONS["max_keypoints"]),
+    baselines: bool = typer.Option(True, help="also run the direct baselines"),
+    baseline_sfm: bool = typer.Option(True, help="reconstruct with the baselines' matches too (their NRI)"),
+) -> None:
+    """Synthesize a survey, run midview and the direct baselines on it, print one table (NIM, NCM,
+    GT-correct, precision, NMP, NRI of ground images) and write OUT/report.html with match pictures."""
+    from rich.console import Console
+
+    from services import pipeline, synth
+    from services.evaluation import evaluate_matches, evaluate_sfm
+
+    console = Console(width=None if sys.stdout.isatty() else 150)
+    t_start = time.perf_counter()
+    if preset not in synth.confs:
+        _fail(f"unknown preset {preset!r}: {', '.join(synth.confs)}")
+    tex = textures or (DEFAULT_TEXTURES if DEFAULT_TEXTURES.is_dir() else None)
+    scene = out / "scene"
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if not scene_complete(scene):
+        console.print(f"rendering the {preset} survey into {scene} (textures: {tex})")
+        synth.main(synth.confs[preset], scene, seed=seed, textures_dir=tex, overwrite=True)
+    timings["synth"] = time.perf_counter() - t0
+    options = {
+        **DEMO_OPTIONS,
+        "seed": seed,
+        "view_planner": view_planner,
+        "views_per_ground_image": views_per_ground_image,
+        "splat_steps": splat_steps,
+        "max_keypoints": max_keypoints,
+    }
+    settings = {**DEMO_SETTINGS, "renderer": renderer, "scene": str(scene) if renderer == "gt" else None}
+    job = pipeline.Job.create(
+        out / "job",
+        scene / "images" / "aerial",
+        scene / "images" / "ground",
+        scene / "pos.csv",
+        scene / "cameras.json",
+        options=options,
+        settings=settings,
+    )
+    t0 = time.perf_counter()
+    results = run_job(job)
+    timings["pipeline"] = time.perf_counter() - t0
+    for s, r in results.items():
+        timings[s] = float(r.get("seconds", 0.0))
+    files: dict[str, Path] = {}
+    sfm_evals: dict[str, dict] = {}
+    if baselines:
+        t0 = time.perf_counter()
+        with console.status("direct baselines"):
+            pipeline._set_threads(job)
+            found = direct_baselines(job, scene, out / "baselines", {"features": _demo_sift_conf()})
+        files.update({k: v[0] for k, v in found.items()})
+        timings["baselines"] = time.perf_counter() - t0
+        if baseline_sfm:
+            t0 = time.perf_counter()
+            for label, (path, conf) in found.items():
+                with console.status(f"reconstruction with the {label} matches"):
+                    try:
+                        model = baseline_reconstruction(job, label, path, conf, out / "baselines")
+                        sfm_evals[label] = evaluate_sfm(scene, model, out / "eval" / f"{path.stem}-combined")
+                    except Exception as e:  # a baseline that cannot reconstruct reports no NRI
+                        logger.warning("no reconstruction with the %s matches: %s", label, e)
+            timings["baselines_sfm"] = time.perf_counter() - t0
+    files["midview"] = job.dir("transfer") / "matches.h5"
+    t0 = time.perf_counter()
+    rows = []
+    for label, path in files.items():
+        s = evaluate_matches(scene, path, out / "eval" / path.stem)
+        s["method"] = label
+        rows.append(s)
+    sfm_evals["midview"] = evaluate_sfm(scene, job.dir("combined") / "sparse", out / "eval" / "combined")
+    timings["evaluation"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    print_table(rows, sfm_evals, console)
+    report = write_report_html(out, scene, files, rows, sfm_evals, timings, job)
+    console.print(f"report: {report}  (total {timings['total'] / 60:.1f} min)")
+
+
+def _demo_sift_conf() -> dict:
+    """SIFT of the direct baseline for the demo: 4096 features at 1024 px (the bench uses 8192 at 1600)."""
+    from services import features as features_mod
+
+    c = json.loads(json.dumps(features_mod.confs["sift"]))
+    c["model"]["max_num_features"] = 4096
+    c["preprocessing"]["resize_max"] = 1024
+    c["output"] = "feats-sift-r1024-k4096"
+    return c
+
+
+def nri_ground(sfm_eval: dict | None) -> str:
+    if not sfm_eval:
+        return "-"
+    g = sfm_eval["per_set"].get("ground", {})
+    return f"{g.get('num_registered', 0)}/{g.get('num_gt', 0)}"
+
+
+def ground_error(sfm_eval: dict | None) -> str:
+    if not sfm_eval:
+        return "-"
+    pe = sfm_eval["per_set"].get("ground", {}).get("position_error", {})
+    return "-" if pe.get("mean") is None else f"{pe['mean']:.2f}"
+
+
+def print_table(rows: list[dict], sfm_evals: dict[str, dict], console) -> None:
+    from rich.table import Table
+
+    table = Table(title="Aerial-ground matching on the co-visible pairs (means per pair)")
+    cols = (
+        "method",
+        "NIM",
+        "NCM",
+        "GT-correct",
+        "precision",
+        "pooled prec.",
+        "NMP",
+        "NRI ground",
+        "pos err (m)",
+    )
+    for col in cols:
+        table.add_column(col, justify="left" if col == "method" else "right")
+    for s in rows:
+        ev = sfm_evals.get(s["method"])
+        table.add_row(
+            s["method"],
+            f"{s['mean_nim']:.1f}",
+            f"{s['mean_ncm']:.1f}",
+            f"{s['mean_gt_correct']:.1f}",
+            f"{s['mean_precision']:.3f}",
+            f"{s['pooled_precision']:.3f}",
+            f"{s['nmp']}/{s['num_pairs']}",
+            nri_ground(ev),
+            ground_error(ev),
+        )
+    console.print(table)
+    console.print(
+        "NRI ground: ground images registered by the combined reconstruction with each method's matches "
+        "(the same procedure); pos err: their mean camera position error after a similarity alignment."
+    )
+
+
+def draw_pair(
+    scene: Path, match_file: Path, aerial: str, ground: str, out_path: Path, max_lines: int = 120
+) -> Path | None:
+    """A side-by-side drawing of the verified matches of one pair (green: GT-correct, red: wrong)."""
+    import cv2
+    import numpy as np
+
+    from services.evaluation import gt_correct_mask
+    from services.evaluation.common import DepthMaps, read_gt_model
+    from shared.matchfile import MatchFile
+
+    with MatchFile(match_file) as mf:
+        pm = mf.get_pair(aerial, ground)
+        if pm is None:
+            return None
+        inl = np.ones(len(pm.matches), bool) if pm.inliers is None else np.asarray(pm.inliers, bool)
+        m = pm.matches[inl]
+        ka, kg = mf.keypoints(aerial)[m[:, 0]], mf.keypoints(ground)[m[:, 1]]
+    cams, poses = read_gt_model(scene)
+    with DepthMaps(scene / "gt" / "depth.h5") as d:
+        ok = gt_correct_mask(
+            ka, kg, cams[aerial], poses[aerial], d[aerial], cams[ground], poses[ground], d[ground]
+        )
+    ia = cv2.imread(str(scene / "images" / aerial))
+    ig = cv2.imread(str(scene / "images" / ground))
+    s = ig.shape[0] / ia.shape[0]
+    ia = cv2.resize(ia, (round(ia.shape[1] * s), ig.shape[0]))
+    canvas = np.concatenate([ia, ig], 1)
+    order = np.random.default_rng(0).permutation(len(ka))[:max_lines]
+    for i in order:
+        p = (int(ka[i, 0] * s), int(ka[i, 1] * s))
+        q = (int(kg[i, 0] + ia.shape[1]), int(kg[i, 1]))
+        cv2.line(canvas, p, q, (0, 200, 0) if ok[i] else (0, 0, 255), 1, cv2.LINE_AA)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out_path), canvas, [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return out_path
+
+
+def write_report_html(
+    out: Path, scene: Path, files: dict, rows: list[dict], sfm_evals: dict[str, dict], timings: dict, job
+) -> Path:
+    """report.html: the table, timings, and match drawings of a few pairs for every method."""
+    import csv
+    import html
+
+    # the pairs where midview has most GT-correct matches, plus the best pair of the direct baseline
+    per_pair = out / "eval" / Path(files["midview"]).stem / "per_pair.csv"
+    picks: list[tuple[str, str]] = []
+    if per_pair.is_file():
+        with open(per_pair) as f:
+            rs = sorted(csv.DictReader(f), key=lambda r: -int(r["gt_correct"]))
+        picks = [(r["aerial"], r["ground"]) for r in rs[:3]]
+    imgs = []
+    for a, g in picks:
+        for label, path in files.items():
+            name = f"{Path(path).stem}__{Path(a).stem}_{Path(g).stem}.jpg"
+            p = draw_pair(scene, Path(path), a, g, out / "pictures" / name)
+            if p is not None:
+                imgs.append((label, a, g, p.relative_to(out)))
+    head = [
+        "method",
+        "NIM",
+        "NCM",
+        "GT-correct",
+        "precision",
+        "pooled precision",
+        "NMP",
+        "NRI ground",
+        "ground position error (m)",
+    ]
+    trs = []
+    for s in rows:
+        ev = sfm_evals.get(s["method"])
+        vals = [
+            s["method"],
+            f"{s['mean_nim']:.1f}",
+            f"{s['mean_ncm']:.1f}",
+            f"{s['mean_gt_correct']:.1f}",
+            f"{s['mean_precision']:.3f}",
+            f"{s['pooled_precision']:.3f}",
+            f"{s['nmp']}/{s['num_pairs']}",
+            nri_ground(ev),
+            ground_error(ev),
+        ]
+        trs.append("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in vals) + "</tr>")
+    pics = "\n".join(
+        f"<figure><img src='{html.escape(str(p))}' width='100%'><figcaption>{html.escape(label)}: "
+        f"{html.escape(a)} / {html.escape(g)} (green: correct under ground truth, red: wrong)"
+        "</figcaption></figure>"
+        for label, a, g, p in imgs
+    )
+    ev = sfm_evals.get("midview")
+    sfm_txt = ""
+    if ev:
+        sfm_txt = (
+            f"<p>midview's combined SfM: NRI aerial {ev['per_set']['aerial']['num_registered']}/"
+            f"{ev['per_set']['aerial']['num_gt']}, ground {nri_ground(ev)}, N3P {ev['num_points3D']}; ground "
+            f"camera position error mean {ground_error(ev)} m (after a similarity alignment).</p>"
+        )
+    doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>midview demo</title>
+<style>body{{font-family:sans-serif;max-width:1400px;margin:auto}}
+td,th{{padding:4px 10px;text-align:right}} td:first-child{{text-align:left}}
+table{{border-collapse:collapse}} tr:nth-child(even){{background:#eee}}</style>
+</head><body><h1>midview demo: {html.escape(str(scene))}</h1>
+<p>Co-visible aerial-ground pairs of the ground truth; means per pair. GT-correct: verified matches
+within 3 px in both images through the true depth; NMP: pairs with at least 15 GT-correct matches.</p>
+<table><tr>{"".join(f"<th>{h}</th>" for h in head)}</tr>{"".join(trs)}</table>
+{sfm_txt}
+<p>Options: {html.escape(json.dumps(job.options.model_dump(mode="json")))}<br>
+Timings (s): {html.escape(json.dumps({k: round(v, 1) for k, v in timings.items()}))}</p>
+<h2>Matches</h2>{pics}</body></html>"""
+    path = out / "report.html"
+    path.write_text(doc)
+    (out / "report.json").write_text(
+        json.dumps({"rows": rows, "sfm": sfm_evals, "timings": timings}, indent=1, default=str)
+    )
+    return path

@@ -1,0 +1,545 @@
+"""Combined aerial + ground reconstruction, seeded with the aerial model.
+
+Database (out/database.db), a copy of the aerial SfM database with:
+- the aerial images' keypoints extended: the aerial SfM keypoints first (their indices, matches and
+  the aerial model's tracks stay valid), then the matching features (services.features cache) the
+  transferred matches refer to, at an offset;
+- the ground camera, the ground images with their matching features and their POS as pose priors;
+- ground-ground matches (POS neighbours, the matching features, F-RANSAC) and the transferred
+  aerial-ground matches (the reducer's verified matches), with two-view geometries.
+
+Input model (out/input): the aerial model rebuilt with the extended keypoints, the ground images whose
+PnP pose the reducer accepted (registered at that pose), and one 3D point per transferred track (the
+rendered-depth point, observed by its aerial and ground keypoints). pycolmap's incremental mapper
+continues from it (`input_path`): it registers the other ground images through these points,
+triangulates, and bundle-adjusts everything. The result is georeferenced like the aerial model (a
+similarity to the aerial POS in the aerial model's ENU frame) and written to out/sparse with
+report.json (NRI per set, N3P, reprojection error, ground camera positions against the PnP and POS).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import sqlite3
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from services.colmap_model import Camera, Pose, read_cameras_json
+from shared.logging import stage
+
+logger = logging.getLogger("midview.combined_sfm")
+
+default_conf: dict[str, Any] = {
+    "ground_pairs": {
+        "num_neighbors": 4,  # each ground image with its nearest ground images (POS) ...
+        "max_distance_m": 40.0,  # ... within this distance ...
+        "max_heading_deg": 100.0,  # ... whose viewing directions differ by less than this
+        "min_inliers": 15,
+    },
+    "seed_points": True,  # 3D points of the transferred tracks in the input model
+    "seed_pnp_poses": True,  # ground images with an accepted PnP pose start registered ...
+    "min_seed_matches": 15,  # ... when one of their pairs has this many matches (and min_num_matches)
+    "mapping": {
+        "min_num_matches": 15,  # pairs with fewer matches are ignored by the mapper
+        "abs_pose_min_num_inliers": 15,
+        "abs_pose_min_inlier_ratio": 0.15,
+        "abs_pose_max_error": 8.0,
+        "min_model_size": 3,
+        "refine_intrinsics": False,
+        "fix_aerial": True,  # the input model (aerial + PnP-seeded ground) stays fixed; BA refines the rest
+        "seed": 0,
+    },
+    "georef": True,
+    "colmap_log_level": 1,
+}
+
+
+def _merge(base: dict, over: dict | None) -> dict:
+    out = json.loads(json.dumps(base))
+    for k, v in (over or {}).items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+# -- database ------------------------------------------------------------------------------------
+def copy_database(src: Path, dst: Path) -> Path:
+    """Copy a COLMAP (SQLite) database consistently, write-ahead log included."""
+    for p in (dst, dst.with_name(dst.name + "-wal"), dst.with_name(dst.name + "-shm")):
+        p.unlink(missing_ok=True)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    s = sqlite3.connect(str(src))
+    d = sqlite3.connect(str(dst))
+    try:
+        s.backup(d)
+    finally:
+        d.close()
+        s.close()
+    return dst
+
+
+def _pad_like(kp: np.ndarray, cols: int) -> np.ndarray:
+    """(N, 2) keypoints widened to the database's keypoint columns (identity shape, unit scale)."""
+    kp = np.asarray(kp, np.float32).reshape(-1, 2)
+    if cols <= 2:
+        return kp
+    if cols == 4:  # x, y, scale, orientation
+        return np.concatenate([kp, np.ones((len(kp), 1), np.float32), np.zeros((len(kp), 1), np.float32)], 1)
+    extra = np.tile(np.array([1, 0, 0, 1], np.float32), (len(kp), 1))  # affine a11 a12 a21 a22
+    return np.concatenate([kp, extra], 1)[:, :cols]
+
+
+def _write_ground(db: pycolmap.Database, camera: Camera, names: list[str]) -> dict[str, int]:
+    cam = camera.to_pycolmap(camera_id=0)
+    cam.has_prior_focal_length = True
+    cam.camera_id = db.write_camera(cam)
+    rig = pycolmap.Rig()
+    rig.add_ref_sensor(cam.sensor_id)
+    rig_id = db.write_rig(rig)
+    ids = {}
+    for n in names:
+        image = pycolmap.Image(name=n, camera_id=cam.camera_id)
+        image.image_id = db.write_image(image)
+        frame = pycolmap.Frame(rig_id=rig_id)
+        frame.add_data_id(image.data_id)
+        db.write_frame(frame)
+        ids[n] = image.image_id
+    return ids
+
+
+def _write_pair(
+    db: pycolmap.Database, id0: int, id1: int, matches: np.ndarray, sizes: dict | None = None
+) -> None:
+    m = np.ascontiguousarray(np.asarray(matches, np.uint32).reshape(-1, 2))
+    if db.exists_matches(id0, id1):
+        return
+    if sizes is not None:
+        for i in (id0, id1):
+            sizes[i] = max(sizes.get(i, 0), len(m))
+    db.write_matches(id0, id1, m)
+    tvg = pycolmap.TwoViewGeometry(
+        config=pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED, inlier_matches=m
+    )
+    db.write_two_view_geometry(id0, id1, tvg)
+
+
+def ground_pairs(poses: dict[str, Pose], names: list[str], conf: dict) -> list[tuple[str, str]]:
+    """Ground image pairs from the POS: nearest neighbours looking alike."""
+    from services.viewpoints import angle_deg, optical_axis
+
+    names = sorted(n for n in names if n in poses)
+    out = set()
+    for a in names:
+        d = sorted((float(np.linalg.norm(poses[a].center - poses[b].center)), b) for b in names if b != a)
+        k = 0
+        for dist, b in d:
+            if dist > conf["max_distance_m"] or k >= conf["num_neighbors"]:
+                break
+            if angle_deg(optical_axis(poses[a]), optical_axis(poses[b])) > conf["max_heading_deg"]:
+                continue
+            out.add(tuple(sorted((a, b))))
+            k += 1
+    return sorted(out)
+
+
+# -- main ----------------------------------------------------------------------------------------
+def main(
+    conf: dict | None,
+    aerial_dir: str | Path,
+    transfer_dir: str | Path,
+    feature_path: str | Path,
+    match_conf: dict,
+    image_dir: str | Path,
+    pos: str | Path,
+    cameras: str | Path | dict[str, Camera],
+    out_dir: str | Path,
+    progress=None,
+) -> Path:
+    """Build the combined database and model; returns out_dir/sparse. `aerial_dir` is the aerial SfM
+    output (database.db, sparse/, georef.json), `transfer_dir` the reducer's (matches.h5,
+    ground_poses.json), `feature_path` the matching features' cache and `match_conf` the matching conf
+    (services.matching.views) for the ground-ground pairs."""
+    from services import features as features_mod
+    from services.matching import direct
+    from services.pos import read_pos
+    from services.sfm import georef as georef_mod
+    from services.sfm.aerial import colmap_log_level
+    from services.transfer import ground_priors
+    from services.viewpoints import read_georef_frame
+    from shared.matchfile import MatchFile
+
+    conf = _merge(default_conf, conf)
+    aerial_dir, transfer_dir, out_dir = Path(aerial_dir), Path(transfer_dir), Path(out_dir)
+    image_dir = Path(image_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cams = read_cameras_json(cameras) if isinstance(cameras, str | Path) else dict(cameras)
+    prog = progress or (lambda f, m: None)
+    t_all = time.perf_counter()
+    timings: dict[str, float] = {}
+
+    with stage("combined:database", logger):
+        t0 = time.perf_counter()
+        db_path = copy_database(aerial_dir / "database.db", out_dir / "database.db")
+        priors, prior_std = ground_priors(pos, aerial_dir / "georef.json")
+        with MatchFile(transfer_dir / "matches.h5", "r") as mf:
+            t_names = mf.image_names()
+            t_pairs = [pm for pm in mf.iter_pairs()]
+            t_kps = {n: mf.keypoints(n) for n in t_names}
+        feature_path = Path(feature_path)
+        ground_names = sorted(set(n for n in t_names if n.startswith("ground/")) | set(priors))
+        ground_names = [n for n in ground_names if (image_dir / n).is_file()]
+        g_feats: dict[str, dict] = {}
+        for n in ground_names:
+            try:
+                g_feats[n] = features_mod.load_features(feature_path, n)
+            except (KeyError, OSError):
+                g_feats[n] = None
+        missing = [n for n, f in g_feats.items() if f is None]
+        if missing:
+            from services.matching.views import feature_conf
+
+            features_mod.main(feature_conf(match_conf), image_dir, missing, feature_path)
+            for n in missing:
+                g_feats[n] = features_mod.load_features(feature_path, n)
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            ids = {im.name: im.image_id for im in db.read_all_images()}
+            offsets: dict[str, int] = {}
+            for n in sorted(t_names):
+                if not n.startswith("aerial/") or n not in ids:
+                    continue
+                old = db.read_keypoints(ids[n])
+                new = np.concatenate([old, _pad_like(t_kps[n], old.shape[1])]).astype(np.float32)
+                db.update_keypoints(ids[n], new)
+                offsets[n] = len(old)
+            g_ids = _write_ground(db, cams["ground"], ground_names)
+            ids.update(g_ids)
+            for n in ground_names:
+                db.write_keypoints(ids[n], np.ascontiguousarray(g_feats[n]["keypoints"], np.float32))
+                if n in priors:
+                    sxy, sz, _ = prior_std[n]
+                    db.write_pose_prior(
+                        pycolmap.PosePrior(
+                            corr_data_id=db.read_image(ids[n]).data_id,
+                            position=priors[n].center,
+                            position_covariance=np.diag([sxy**2, sxy**2, sz**2]),
+                            coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
+                        )
+                    )
+            # transferred aerial-ground matches (verified only)
+            pair_sizes: dict[int, int] = {}  # image id -> its largest pair in the database
+            n_ag = 0
+            ag: list[tuple[str, str, np.ndarray]] = []
+            for pm in t_pairs:
+                a, g = (pm.name0, pm.name1) if pm.name0.startswith("aerial/") else (pm.name1, pm.name0)
+                m = pm.matches if pm.name0 == a else pm.matches[:, ::-1]
+                inl = np.ones(len(m), bool) if pm.inliers is None else np.asarray(pm.inliers, bool)
+                m = m[inl].astype(np.int64)
+                if len(m) == 0 or a not in offsets or g not in ids:
+                    continue
+                if len(g_feats[g]["keypoints"]) != len(t_kps[g]):
+                    raise ValueError(f"{g}: the feature cache and the transfer disagree on its keypoints")
+                mm = np.stack([m[:, 0] + offsets[a], m[:, 1]], 1)
+                _write_pair(db, ids[a], ids[g], mm, pair_sizes)
+                ag.append((a, g, m))
+                n_ag += len(m)
+            # ground-ground
+            gp = ground_pairs(priors, ground_names, conf["ground_pairs"])
+            n_gg = 0
+            for i, (g0, g1) in enumerate(gp):
+                pm = direct.match_pair(match_conf, g0, g1, g_feats[g0], g_feats[g1])
+                inl = pm.matches[pm.inliers]
+                if len(inl) >= conf["ground_pairs"]["min_inliers"]:
+                    _write_pair(db, ids[g0], ids[g1], inl, pair_sizes)
+                    n_gg += 1
+                prog(0.6 * (i + 1) / max(len(gp), 1), f"ground pair {i + 1}/{len(gp)}")
+        finally:
+            db.close()
+        timings["database"] = time.perf_counter() - t0
+        logger.info(
+            "database: %d aerial-ground matches in %d pairs, %d/%d ground-ground pairs verified",
+            n_ag,
+            len(ag),
+            n_gg,
+            len(gp),
+        )
+
+    with stage("combined:input-model", logger):
+        aerial = pycolmap.Reconstruction(str(aerial_dir / "sparse"))
+        pnp = json.loads((transfer_dir / "ground_poses.json").read_text())["images"]
+        seed = build_input_model(aerial, db_path, ids, offsets, ag, pnp, pair_sizes, conf, out_dir / "input")
+
+    with stage("combined:mapping", logger):
+        t0 = time.perf_counter()
+        mc = conf["mapping"]
+        o = pycolmap.IncrementalPipelineOptions()
+        o.random_seed = int(mc["seed"])
+        o.mapper.random_seed = int(mc["seed"])
+        o.min_model_size = int(mc["min_model_size"])
+        o.min_num_matches = int(mc["min_num_matches"])
+        o.multiple_models = False
+        o.use_prior_position = False
+        o.fix_existing_frames = bool(mc["fix_aerial"])
+        o.mapper.abs_pose_min_num_inliers = int(mc["abs_pose_min_num_inliers"])
+        o.mapper.abs_pose_min_inlier_ratio = float(mc["abs_pose_min_inlier_ratio"])
+        o.mapper.abs_pose_max_error = float(mc["abs_pose_max_error"])
+        refine = bool(mc["refine_intrinsics"])
+        o.ba_refine_focal_length = refine
+        o.ba_refine_extra_params = refine
+        o.ba_refine_principal_point = False
+        o.mapper.abs_pose_refine_focal_length = refine
+        o.mapper.abs_pose_refine_extra_params = refine
+        models_dir = out_dir / "models"
+        if models_dir.exists():
+            shutil.rmtree(models_dir)
+        models_dir.mkdir(parents=True)
+        n_total = len(ids)
+        state = {"n": seed.num_reg_images()}
+
+        def registered() -> None:
+            state["n"] += 1
+            prog(0.6 + 0.35 * min(state["n"] / max(n_total, 1), 1.0), f"{state['n']} images registered")
+
+        with colmap_log_level(conf["colmap_log_level"]):
+            models = pycolmap.incremental_mapping(
+                db_path,
+                image_dir,
+                models_dir,
+                o,
+                input_path=out_dir / "input",
+                next_image_callback=registered,
+            )
+        timings["mapping"] = time.perf_counter() - t0
+        if models:
+            rec = max(models.values(), key=lambda r: r.num_reg_images())
+        else:
+            logger.warning("the mapper returned no model: keeping the seeded input model")
+            rec = seed
+
+    with stage("combined:georef", logger):
+        frame = read_georef_frame(aerial_dir / "georef.json")
+        records = {r.name: r for r in read_pos(pos) if r.name.startswith("aerial/")}
+        geo_summary = None
+        if conf["georef"] and not conf["mapping"]["fix_aerial"]:
+            sigma = float(np.median([r.std_xy or 3.0 for r in records.values()])) if records else 3.0
+            try:
+                geo = georef_mod.georeference(rec, records, frame, sigma)
+                geo_summary = {**georef_mod.summary(geo), "method": geo.method}
+            except georef_mod.GeorefError as e:
+                logger.warning("georeferencing failed: %s", e)
+        sparse = out_dir / "sparse"
+        if sparse.exists():
+            shutil.rmtree(sparse)
+        sparse.mkdir(parents=True)
+        rec.write(str(sparse))
+        shutil.copy(aerial_dir / "georef.json", out_dir / "georef.json")
+
+    report = build_report(rec, ids, priors, pnp, seed, geo_summary, timings, t_all)
+    (out_dir / "report.json").write_text(json.dumps(report, indent=1))
+    logger.info(
+        "combined model: NRI aerial %s, ground %s; N3P %d; reprojection error %.2f px -> %s",
+        report["NRI"]["aerial"],
+        report["NRI"]["ground"],
+        report["num_points3D"],
+        report["mean_reprojection_error_px"],
+        sparse,
+    )
+    prog(1.0, "done")
+    return sparse
+
+
+def build_input_model(
+    aerial: pycolmap.Reconstruction,
+    db_path: Path,
+    ids: dict[str, int],
+    offsets: dict[str, int],
+    ag: list[tuple[str, str, np.ndarray]],
+    pnp: dict[str, dict],
+    pair_sizes: dict[int, int],
+    conf: dict,
+    out: Path,
+) -> pycolmap.Reconstruction:
+    """The aerial model with extended keypoints, the PnP-registered ground images and the transferred
+    tracks (see the module docstring); written to `out`."""
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        db_images = {im.image_id: im for im in db.read_all_images()}
+        db_cams = {c.camera_id: c for c in db.read_all_cameras()}
+        kps = {i: db.read_keypoints(i)[:, :2].astype(np.float64) for i in db_images}
+    finally:
+        db.close()
+    rec = pycolmap.Reconstruction()
+    for cam_id in sorted(db_cams):
+        rec.add_camera_with_trivial_rig(db_cams[cam_id])
+    # the aerial model's cameras (refined intrinsics, if any) override the database's
+    for cam_id, cam in aerial.cameras.items():
+        if cam_id in db_cams:
+            rec.cameras[cam_id].params = cam.params
+    by_name = {im.name: im for im in aerial.images.values() if im.has_pose}
+    registered: set[str] = set()
+    for name, img in sorted(by_name.items()):
+        iid = ids[name]
+        if iid != img.image_id:
+            raise RuntimeError(f"{name}: image id {img.image_id} in the aerial model, {iid} in its database")
+        im = pycolmap.Image(name=name, keypoints=kps[iid], camera_id=img.camera_id, image_id=iid)
+        rec.add_image_with_trivial_frame(im, img.cam_from_world())
+        registered.add(name)
+    ground_cam_id = next((db_images[ids[n]].camera_id for n in ids if n.startswith("ground/")), None)
+    if conf["seed_pnp_poses"]:
+        min_pair = max(int(conf["mapping"]["min_num_matches"]), int(conf["min_seed_matches"]))
+        for g, r in sorted(pnp.items()):
+            # the mapper only keeps images with a pair of at least min_num_matches correspondences
+            if not r.get("accepted") or g not in ids or pair_sizes.get(ids[g], 0) < min_pair:
+                continue
+            iid = ids[g]
+            im = pycolmap.Image(name=g, keypoints=kps[iid], camera_id=ground_cam_id, image_id=iid)
+            pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(r["R"], float)), np.asarray(r["t"], float))
+            rec.add_image_with_trivial_frame(im, pose)
+            registered.add(g)
+    # every other database image, unregistered (the mapper expects a frame for each)
+    present = set(by_name) | registered
+    for iid, dbim in sorted(db_images.items()):
+        if dbim.name in present:
+            continue
+        im = pycolmap.Image(name=dbim.name, keypoints=kps[iid], camera_id=dbim.camera_id, image_id=iid)
+        rec.add_image_with_trivial_frame(im)
+    for _, p in sorted(aerial.points3D.items()):
+        rec.add_point3D(p.xyz, pycolmap.Track(p.track.elements), p.color)
+    n_seed = 0
+    if conf["seed_points"]:
+        n_seed = _seed_tracks(rec, ids, offsets, ag, kps, registered)
+    out.mkdir(parents=True, exist_ok=True)
+    rec.write(str(out))
+    logger.info(
+        "input model: %d aerial + %d ground images registered, %d aerial points, %d seeded tracks",
+        sum(n.startswith("aerial/") for n in registered),
+        sum(n.startswith("ground/") for n in registered),
+        aerial.num_points3D(),
+        n_seed,
+    )
+    return rec
+
+
+def _seed_tracks(
+    rec: pycolmap.Reconstruction,
+    ids: dict[str, int],
+    offsets: dict[str, int],
+    ag: list[tuple[str, str, np.ndarray]],
+    kps: dict[int, np.ndarray],
+    registered: set[str],
+) -> int:
+    """One 3D point per connected set of transferred observations whose images are registered, placed
+    by a linear triangulation of its observations (at least two images, one aerial and one ground)."""
+    parent: dict[tuple[int, int], tuple[int, int]] = {}
+
+    def find(x):
+        while parent.setdefault(x, x) != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for a, g, m in ag:
+        if a not in registered or g not in registered:
+            continue
+        for ia, ig in m:
+            u, v = (ids[a], int(ia) + offsets[a]), (ids[g], int(ig))
+            ru, rv = find(u), find(v)
+            if ru != rv:
+                parent[max(ru, rv)] = min(ru, rv)
+    groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for x in list(parent):
+        groups.setdefault(find(x), []).append(x)
+    n = 0
+    for root in sorted(groups):
+        obs = sorted(groups[root])
+        img_ids = [i for i, _ in obs]
+        if len(set(img_ids)) != len(img_ids) or len(obs) < 2:
+            continue  # two keypoints of one image in a track: inconsistent, skip it
+        X = _triangulate(rec, obs, kps)
+        if X is None:
+            continue
+        track = pycolmap.Track([pycolmap.TrackElement(i, k) for i, k in obs])
+        rec.add_point3D(X, track, np.array([128, 128, 128], np.uint8))
+        n += 1
+    return n
+
+
+def _triangulate(
+    rec: pycolmap.Reconstruction, obs: list[tuple[int, int]], kps: dict[int, np.ndarray]
+) -> np.ndarray | None:
+    """Linear (DLT) triangulation; None when it lies behind a camera or reprojects badly (> 8 px)."""
+    A = []
+    Ps = []
+    for iid, k in obs:
+        img = rec.images[iid]
+        K = np.asarray(img.camera.calibration_matrix())
+        P = K @ np.asarray(img.cam_from_world().matrix())
+        x, y = kps[iid][k]
+        A.append(x * P[2] - P[0])
+        A.append(y * P[2] - P[1])
+        Ps.append((P, kps[iid][k]))
+    _, _, Vt = np.linalg.svd(np.asarray(A))
+    Xh = Vt[-1]
+    if abs(Xh[3]) < 1e-12:
+        return None
+    X = Xh[:3] / Xh[3]
+    for P, uv in Ps:
+        p = P @ np.append(X, 1.0)
+        if p[2] <= 0 or np.linalg.norm(p[:2] / p[2] - uv) > 8.0:
+            return None
+    return X
+
+
+def build_report(
+    rec: pycolmap.Reconstruction,
+    ids: dict[str, int],
+    priors: dict[str, Pose],
+    pnp: dict[str, dict],
+    seed: pycolmap.Reconstruction,
+    georef: dict | None,
+    timings: dict,
+    t_all: float,
+) -> dict:
+    reg = {im.name: im for im in rec.images.values() if im.has_pose}
+    sets = {
+        "aerial": sorted(n for n in ids if n.startswith("aerial/")),
+        "ground": sorted(n for n in ids if n.startswith("ground/")),
+    }
+    nri = {s: f"{sum(n in reg for n in names)}/{len(names)}" for s, names in sets.items()}
+    ground = {}
+    for g in sets["ground"]:
+        d: dict[str, Any] = {"registered": g in reg}
+        if g in reg:
+            c = np.asarray(reg[g].projection_center())
+            d["center"] = c.tolist()
+            if g in priors:
+                d["to_pos_m"] = float(np.linalg.norm(c - priors[g].center))
+            if pnp.get(g, {}).get("accepted"):
+                d["to_pnp_m"] = float(np.linalg.norm(c - np.asarray(pnp[g]["center"], float)))
+        else:
+            d["reason"] = (
+                "no verified aerial-ground or ground-ground matches strong enough to register it"
+                if not pnp.get(g, {}).get("accepted")
+                else "registered by PnP but dropped by the mapper"
+            )
+        ground[g] = d
+    return {
+        "NRI": nri,
+        "num_registered": {s: sum(n in reg for n in names) for s, names in sets.items()},
+        "num_images": {s: len(names) for s, names in sets.items()},
+        "num_points3D": int(rec.num_points3D()),
+        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+        "mean_track_length": float(rec.compute_mean_track_length()),
+        "seeded_ground_images": sum(im.name.startswith("ground/") for im in seed.images.values()),
+        "georef": georef,
+        "ground": ground,
+        "timings_s": {
+            **{k: round(v, 2) for k, v in timings.items()},
+            "total": round(time.perf_counter() - t_all, 2),
+        },
+    }

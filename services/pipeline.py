@@ -1,0 +1,730 @@
+"""The pipeline stages over a job folder, and an in-process runner (`midview run`, and the Celery workers
+stage by stage).
+
+A job folder holds everything of one job:
+
+```
+JOB/job.json             inputs (aerial/ground image folders, POS, cameras), JobOptions, settings
+JOB/images/{aerial,ground}  links to the input image folders (image names: aerial/X.jpg, ground/Y.jpg)
+JOB/cameras.json         intrinsics per set (the given cameras.json; else the aerial model's / EXIF)
+JOB/sfm/                 aerial_sfm:   sparse/, georef.json, database.db, report.json
+JOB/splat/               train_splat:  point_cloud.ply, metrics.json, ckpts/
+JOB/plan/views.json      plan_views
+JOB/views/               render_views: NAME.png, NAME.depth.npy, views.json
+JOB/features/            match_views:  the aerial and ground images' matching features (cache)
+JOB/matches/NAME.h5      match_views:  one file per view
+JOB/transfer/            reduce:       matches.h5, database.db, ground_poses.json, report.json
+JOB/combined/            combined_sfm: sparse/, database.db, report.json
+JOB/stages/STAGE.json    done markers: input fingerprint, outputs, seconds, summary
+```
+
+Every stage is a function of the job folder. A stage whose outputs exist and whose input fingerprint
+(a hash of its conf and of its input files' names, sizes and modification times) matches its marker is
+skipped, so a rerun skips finished stages and resumes a failed one (3DGS training resumes from its last
+checkpoint, view matching skips views already matched). Progress goes through a callback
+`progress(stage, fraction, message)`.
+
+    job = Job.create("runs/job1", aerial="data/aerial", ground="data/ground", pos="data/pos.csv")
+    run(job, progress=print)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from shared.job_options import STAGE_QUEUES, STAGES, JobOptions
+
+logger = logging.getLogger("midview.pipeline")
+
+Progress = Callable[[str, float, str], None]
+JOB_FILE = "job.json"
+
+# pipeline knobs that JobOptions does not carry (job.json "settings"), with their defaults
+DEFAULT_SETTINGS: dict[str, Any] = {
+    "renderer": "splat",  # "splat" (the product) or "gt" (ground truth of a synthetic scene: bench only)
+    "scene": None,  # synthetic scene folder, for renderer "gt"
+    "splat_backend": "auto",
+    "torch_threads": None,  # None: leave torch's setting; 1 is much faster on a loaded 2-core machine
+    "sfm": {},  # overrides of services.sfm confs
+    "splat": {},  # overrides of services.splat confs
+    "viewpoints": {},  # overrides of services.viewpoints confs
+    "views": {},  # services.views conf
+    "matching": {},  # overrides of services.matching.views confs (e.g. resize_max)
+    "transfer": {},  # overrides of services.transfer.default_conf
+    "combined": {},  # overrides of services.combined_sfm.default_conf
+}
+
+
+def _merge(base: dict, over: dict | None) -> dict:
+    out = json.loads(json.dumps(base))
+    for k, v in (over or {}).items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+# -- job folder ----------------------------------------------------------------------------------
+class Job:
+    """A job folder: inputs, options, settings and the paths of every stage's files."""
+
+    def __init__(self, root: str | Path, inputs: dict, options: JobOptions, settings: dict):
+        self.root = Path(root)
+        self.inputs = dict(inputs)
+        self.options = options
+        self.settings = _merge(DEFAULT_SETTINGS, settings)
+
+    # construction
+    @classmethod
+    def create(
+        cls,
+        root: str | Path,
+        aerial: str | Path,
+        ground: str | Path,
+        pos: str | Path,
+        cameras: str | Path | None = None,
+        options: JobOptions | dict | None = None,
+        settings: dict | None = None,
+    ) -> Job:
+        """Write job.json and the image links; an existing job folder keeps its stage outputs."""
+        root = Path(root)
+        root.mkdir(parents=True, exist_ok=True)
+        opts = options if isinstance(options, JobOptions) else JobOptions.model_validate(options or {})
+        inputs = {
+            "aerial": str(Path(aerial).resolve()),
+            "ground": str(Path(ground).resolve()),
+            "pos": str(Path(pos).resolve()),
+            "cameras": str(Path(cameras).resolve()) if cameras else None,
+        }
+        for k in ("aerial", "ground"):
+            if not Path(inputs[k]).is_dir():
+                raise FileNotFoundError(f"{k} image folder {inputs[k]} does not exist")
+        if not Path(inputs["pos"]).is_file():
+            raise FileNotFoundError(f"POS file {inputs['pos']} does not exist")
+        if inputs["cameras"] and not Path(inputs["cameras"]).is_file():
+            raise FileNotFoundError(f"cameras file {inputs['cameras']} does not exist")
+        settings = dict(settings or {})
+        if settings.get("scene"):
+            settings["scene"] = str(Path(settings["scene"]).resolve())
+        job = cls(root, inputs, opts, settings)
+        job.save()
+        job.link_images()
+        return job
+
+    @classmethod
+    def load(cls, root: str | Path) -> Job:
+        root = Path(root)
+        doc = json.loads((root / JOB_FILE).read_text())
+        return cls(root, doc["inputs"], JobOptions.model_validate(doc["options"]), doc.get("settings", {}))
+
+    def save(self) -> Path:
+        doc = {
+            "inputs": self.inputs,
+            "options": self.options.model_dump(mode="json"),
+            "settings": self.settings,
+        }
+        path = self.root / JOB_FILE
+        path.write_text(json.dumps(doc, indent=1))
+        return path
+
+    def link_images(self) -> None:
+        for s in ("aerial", "ground"):
+            link = self.image_dir / s
+            link.parent.mkdir(parents=True, exist_ok=True)
+            target = Path(self.inputs[s])
+            if link.is_symlink() and Path(os.readlink(link)) == target:
+                continue
+            if link.is_symlink() or link.is_file():
+                link.unlink()
+            elif link.is_dir():
+                shutil.rmtree(link)
+            link.symlink_to(target, target_is_directory=True)
+
+    # paths
+    @property
+    def image_dir(self) -> Path:
+        return self.root / "images"
+
+    @property
+    def pos(self) -> Path:
+        return Path(self.inputs["pos"])
+
+    @property
+    def cameras(self) -> Path:
+        return self.root / "cameras.json"
+
+    def dir(self, name: str) -> Path:
+        return self.root / name
+
+    @property
+    def stages_dir(self) -> Path:
+        return self.root / "stages"
+
+    @property
+    def features_path(self) -> Path:
+        from services.matching.views import feature_conf
+
+        return self.dir("features") / f"{feature_conf(self.match_conf())['output']}.h5"
+
+    # confs derived from the options and settings
+    def sfm_conf(self) -> dict:
+        from services import sfm
+
+        base = sfm.confs[self.options.sfm_features]
+        return _merge(base, _merge({"mapping": {"seed": self.options.seed}}, self.settings["sfm"]))
+
+    def splat_conf(self) -> dict:
+        from services.splat import confs, resolve_backend
+
+        be = resolve_backend(self.settings["splat_backend"])
+        c = confs["default" if be == "cuda" else "fast"]
+        steps = int(self.options.splat_steps)
+        over: dict[str, Any] = {
+            "steps": steps,
+            "max_width": int(self.options.splat_max_width),
+            "seed": int(self.options.seed),
+            "save_test_renders": False,
+        }
+        if steps != c["steps"]:  # keep the schedule's proportions (as `midview splat train` does)
+            f = steps / c["steps"]
+            s = c["strategy"]
+            over["strategy"] = {
+                "refine_start_iter": max(1, int(s["refine_start_iter"] * f)),
+                "refine_stop_iter": max(2, int(s["refine_stop_iter"] * f)),
+                "reset_every": max(1, int(s["reset_every"] * f)),
+            }
+            over["sh_degree_interval"] = max(1, int(c["sh_degree_interval"] * f))
+        over["ckpt_every"] = max(1, steps // 10)
+        return _merge(_merge(c, over), self.settings["splat"])
+
+    def viewpoint_conf(self) -> dict:
+        from services import viewpoints
+
+        c = viewpoints.confs[self.options.view_planner]
+        over = {"views_per_ground_image": int(self.options.views_per_ground_image), "seed": self.options.seed}
+        return _merge(_merge(c, over), self.settings["viewpoints"])
+
+    def match_conf(self) -> dict:
+        from services.matching import views as mv
+
+        c = mv.confs[self.options.matcher]
+        return _merge(
+            _merge(c, {"max_keypoints": int(self.options.max_keypoints)}), self.settings["matching"]
+        )
+
+    def transfer_conf(self) -> dict:
+        from services import transfer
+
+        return _merge(transfer.default_conf, self.settings["transfer"])
+
+    def combined_conf(self) -> dict:
+        from services import combined_sfm
+
+        return _merge(combined_sfm.default_conf, self.settings["combined"])
+
+    # renderer
+    def renderer(self):
+        from services import views
+
+        if self.settings["renderer"] == "gt":
+            if not self.settings.get("scene"):
+                raise ValueError("renderer 'gt' needs settings.scene: a synthetic scene folder")
+            return views.GroundTruthRenderer(self.settings["scene"], self.dir("sfm") / "sparse")
+        if self.settings["renderer"] != "splat":
+            raise ValueError(f"unknown renderer {self.settings['renderer']!r} (splat, gt)")
+        return views.SplatRenderer(
+            self.dir("splat"), self.settings["splat_backend"], self.settings["views"].get("min_alpha", 0.5)
+        )
+
+    def renderer_inputs(self) -> list[Path]:
+        if self.settings["renderer"] == "gt":
+            return [Path(self.settings["scene"]) / "gt" / "scene.json"]
+        return [self.dir("splat") / "point_cloud.ply"]
+
+
+# -- fingerprints and markers --------------------------------------------------------------------
+_SKIP_SUFFIXES = (".tmp", "-wal", "-shm", "-journal")
+
+
+def _files(path: Path) -> list[Path]:
+    if path.is_file():
+        return [path]
+    if not path.is_dir():
+        return []
+    out = []
+    for dirpath, dirnames, filenames in os.walk(path, followlinks=True):
+        dirnames.sort()
+        for f in sorted(filenames):
+            if f.startswith(".") or f.endswith(_SKIP_SUFFIXES):
+                continue
+            out.append(Path(dirpath) / f)
+    return out
+
+
+def fingerprint(conf: Any, inputs: list[Path], root: Path | None = None) -> str:
+    """sha256 of the conf (JSON) and of the inputs' file names, sizes and modification times. Names under
+    `root` (the job folder) are taken relative to it, so that a job folder can be moved, or its stage
+    folders shared with another job through links."""
+
+    def name(p: Path) -> str:
+        if root is not None:
+            try:
+                return str(Path(os.path.abspath(p)).relative_to(os.path.abspath(root)))
+            except ValueError:
+                pass
+        return str(p)
+
+    h = hashlib.sha256()
+    h.update(json.dumps(conf, sort_keys=True, default=str).encode())
+    for p in inputs:
+        p = Path(p)
+        h.update(f"#{name(p)}".encode())
+        for f in _files(p):
+            try:
+                st = f.stat()
+            except FileNotFoundError:
+                continue
+            h.update(f"{name(f)}:{st.st_size}:{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
+@dataclass
+class StageDef:
+    """One stage: run(job, report) -> summary dict; its conf, inputs and outputs derived from the job."""
+
+    name: str
+    run: Callable[[Job, Callable[[float, str], None]], dict]
+    conf: Callable[[Job], Any]
+    inputs: Callable[[Job], list[Path]]
+    outputs: Callable[[Job], list[Path]]
+
+    @property
+    def queue(self) -> str:
+        return STAGE_QUEUES[self.name]
+
+
+def marker_path(job: Job, stage: str) -> Path:
+    return job.stages_dir / f"{stage}.json"
+
+
+def read_marker(job: Job, stage: str) -> dict | None:
+    try:
+        return json.loads(marker_path(job, stage).read_text())
+    except (FileNotFoundError, ValueError):
+        return None
+
+
+def is_done(job: Job, stage: str) -> bool:
+    """Whether the stage's outputs exist and were made from the current inputs and conf."""
+    sd = REGISTRY[stage]
+    m = read_marker(job, stage)
+    if m is None or any(not Path(p).exists() for p in sd.outputs(job)):
+        return False
+    return m.get("fingerprint") == fingerprint(sd.conf(job), sd.inputs(job), job.root)
+
+
+# -- stages --------------------------------------------------------------------------------------
+def _aerial_sfm(job: Job, report) -> dict:
+    from services import sfm
+    from services.colmap_model import read_cameras_json
+
+    cams = read_cameras_json(job.inputs["cameras"]) if job.inputs.get("cameras") else None
+    report(0.0, "aerial structure from motion")
+    sfm.main(job.sfm_conf(), job.image_dir, job.dir("sfm"), job.pos, cams, image_set="aerial")
+    write_job_cameras(job)
+    rep = json.loads((job.dir("sfm") / "report.json").read_text())
+    return {"NRI": rep["NRI"], "num_points3D": rep["num_points3D"]}
+
+
+def write_job_cameras(job: Job) -> Path:
+    """JOB/cameras.json: the given cameras.json; else the aerial model's camera and the ground EXIF."""
+    from services.colmap_model import read_cameras_json, read_model, write_cameras_json
+
+    if job.inputs.get("cameras"):
+        cams = read_cameras_json(job.inputs["cameras"])
+    else:
+        cams = {}
+    if "aerial" not in cams:
+        model_cams, _ = read_model(job.dir("sfm") / "sparse")
+        cams["aerial"] = next(iter(model_cams.values()))
+    if "ground" not in cams:
+        from services.pos import camera_from_exif, read_exif
+        from shared.images import list_images
+
+        ground = [n for n in list_images(job.image_dir, ("ground",))]
+        cam = camera_from_exif(read_exif(job.image_dir / ground[0])) if ground else None
+        if cam is None:
+            raise ValueError("no cameras.json and no focal length in the ground images' EXIF")
+        cams["ground"] = cam
+    return write_cameras_json(job.cameras, cams)
+
+
+def _train_splat(job: Job, report) -> dict:
+    if job.settings["renderer"] == "gt":
+        out = job.dir("splat")
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "skipped.json").write_text(json.dumps({"reason": "renderer gt: no 3DGS model needed"}))
+        return {"skipped": "renderer gt"}
+    return train_splat(
+        job.splat_conf(),
+        job.dir("sfm") / "sparse",
+        job.image_dir,
+        job.dir("splat"),
+        job.settings["splat_backend"],
+        report,
+    )
+
+
+def train_splat(conf: dict, sparse: Path, image_dir: Path, out: Path, backend: str, report) -> dict:
+    """services.splat training in chunks (checkpoint at each), so that progress can be reported and a
+    killed run resumes from its last chunk."""
+    from services.splat import Trainer, load_scene
+    from services.splat.train import write_views
+
+    out.mkdir(parents=True, exist_ok=True)
+    data = load_scene(sparse, image_dir, conf["max_width"], "aerial/", conf["test_every"])
+    trainer = Trainer(conf, data, out, backend)
+    conf_file = out / "conf.json"
+    if conf_file.is_file() and json.loads(conf_file.read_text()) != json.loads(json.dumps(trainer.conf)):
+        shutil.rmtree(out / "ckpts", ignore_errors=True)  # checkpoints of another conf: start afresh
+    conf_file.write_text(json.dumps(trainer.conf, indent=1))
+    write_views(data.views, out / "views.json")
+    steps = int(trainer.conf["steps"])
+    chunk = int(trainer.conf["ckpt_every"])
+    t0 = time.perf_counter()
+    done = 0
+    while done < steps:
+        trainer.train(resume=True, stop_after=min(done + chunk, steps), progress=False)
+        done = trainer.step
+        report(done / steps, f"step {done}/{steps}, {len(trainer.splats['means'])} Gaussians")
+    train_s = time.perf_counter() - t0
+    trainer.export()
+    test = trainer.evaluate() if data.test_ids else {"psnr": float("nan"), "ssim": float("nan"), "n_views": 0}
+    metrics = {
+        "steps": trainer.step,
+        "num_gaussians": len(trainer.splats["means"]),
+        "backend": trainer.backend,
+        "resolution": [data.views[0].width, data.views[0].height],
+        "seconds": {"train": train_s},
+        "test": {k: test[k] for k in ("psnr", "ssim", "n_views") if k in test},
+    }
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    return {"num_gaussians": metrics["num_gaussians"], "test_psnr": test.get("psnr")}
+
+
+def _plan_views(job: Job, report) -> dict:
+    from services import viewpoints, views
+
+    report(0.0, "planning views")
+    r = job.renderer()
+    path = viewpoints.main(
+        job.viewpoint_conf(),
+        job.dir("sfm") / "sparse",
+        job.pos,
+        job.cameras,
+        job.dir("sfm") / "georef.json",
+        job.dir("plan") / "views.json",
+        depth_fn=views.depth_fn(r),
+    )
+    return json.loads(path.read_text())["summary"]
+
+
+def _render_views(job: Job, report) -> dict:
+    from services import views
+
+    r = job.renderer()
+    path = views.main(job.settings["views"], job.dir("plan") / "views.json", job.dir("views"), r, report)
+    doc = json.loads(path.read_text())
+    _prune(job.dir("views"), {f for v in doc["views"] for f in (v["image"], v["depth"])} | {"views.json"})
+    return {"num_views": len(doc["views"]), "renderer": doc["rendered"]["renderer"]}
+
+
+def _prune(folder: Path, keep: set[str]) -> None:
+    """Remove files of views that are no longer planned."""
+    for p in folder.iterdir():
+        if p.is_file() and p.name not in keep:
+            p.unlink()
+
+
+def view_names(job: Job) -> list[str]:
+    """The rendered views (units of the match_views stage)."""
+    doc = json.loads((job.dir("views") / "views.json").read_text())
+    return [v["name"] for v in doc["views"]]
+
+
+def prepare_match_views(job: Job) -> Path:
+    """Extract the candidate aerial and ground images' features once (before the fan-out)."""
+    from services.matching import views as mv
+
+    doc = json.loads((job.dir("views") / "views.json").read_text())
+    names = sorted({n for v in doc["views"] for n in (*v.get("aerial", []), *v.get("ground", []))})
+    return mv.prepare_features(job.match_conf(), job.image_dir, names, job.features_path)
+
+
+def match_view_unit(job: Job, name: str) -> Path:
+    """One unit of the match_views fan-out: match view `name` (the features must be prepared)."""
+    from services.matching import views as mv
+
+    doc = json.loads((job.dir("views") / "views.json").read_text())
+    view = next(v for v in doc["views"] if v["name"] == name)
+    return mv.match_view(
+        job.match_conf(), view, job.dir("views"), job.image_dir, job.features_path, job.dir("matches")
+    )
+
+
+def _match_views(job: Job, report) -> dict:
+    _set_threads(job)
+    report(0.0, "extracting features of the aerial and ground images")
+    prepare_match_views(job)
+    names = view_names(job)
+    for i, n in enumerate(names):
+        match_view_unit(job, n)
+        report((i + 1) / max(len(names), 1), f"matched view {n}")
+    _prune(job.dir("matches"), {f"{n}.h5" for n in names})
+    return {"num_views": len(names)}
+
+
+def _reduce(job: Job, report) -> dict:
+    from services import transfer
+
+    report(0.0, "transferring matches")
+    files = sorted(job.dir("matches").glob("*.h5"))
+    transfer.main(
+        job.transfer_conf(),
+        job.dir("views") / "views.json",
+        files,
+        job.dir("sfm") / "sparse",
+        job.pos,
+        job.cameras,
+        job.dir("sfm") / "georef.json",
+        job.dir("transfer"),
+    )
+    rep = json.loads((job.dir("transfer") / "report.json").read_text())
+    return {
+        "putative": rep["putative"],
+        "verified": rep["verified"],
+        "ground_poses_accepted": len(rep["ground_accepted"]),
+    }
+
+
+def _combined_sfm(job: Job, report) -> dict:
+    from services import combined_sfm
+
+    _set_threads(job)
+    combined_sfm.main(
+        job.combined_conf(),
+        job.dir("sfm"),
+        job.dir("transfer"),
+        job.features_path,
+        job.match_conf(),
+        job.image_dir,
+        job.pos,
+        job.cameras,
+        job.dir("combined"),
+        progress=report,
+    )
+    rep = json.loads((job.dir("combined") / "report.json").read_text())
+    return {"NRI": rep["NRI"], "num_points3D": rep["num_points3D"]}
+
+
+def _set_threads(job: Job) -> None:
+    n = job.settings.get("torch_threads")
+    if n:
+        import torch
+
+        torch.set_num_threads(int(n))
+
+
+def _images(job: Job, s: str) -> Path:
+    return job.image_dir / s
+
+
+REGISTRY: dict[str, StageDef] = {
+    "aerial_sfm": StageDef(
+        "aerial_sfm",
+        _aerial_sfm,
+        lambda j: {"sfm": j.sfm_conf(), "cameras": j.inputs.get("cameras")},
+        lambda j: (
+            [_images(j, "aerial"), j.pos] + ([Path(j.inputs["cameras"])] if j.inputs.get("cameras") else [])
+        ),
+        lambda j: [
+            j.dir("sfm") / "sparse",
+            j.dir("sfm") / "georef.json",
+            j.dir("sfm") / "database.db",
+            j.cameras,
+        ],
+    ),
+    "train_splat": StageDef(
+        "train_splat",
+        _train_splat,
+        lambda j: (
+            {"renderer": j.settings["renderer"]}
+            if j.settings["renderer"] == "gt"
+            else {"splat": j.splat_conf(), "backend": j.settings["splat_backend"]}
+        ),
+        lambda j: (
+            [j.dir("sfm") / "sparse"] + ([] if j.settings["renderer"] == "gt" else [_images(j, "aerial")])
+        ),
+        lambda j: [
+            j.dir("splat") / ("skipped.json" if j.settings["renderer"] == "gt" else "point_cloud.ply")
+        ],
+    ),
+    "plan_views": StageDef(
+        "plan_views",
+        _plan_views,
+        lambda j: {"viewpoints": j.viewpoint_conf(), "renderer": j.settings["renderer"]},
+        lambda j: [
+            j.dir("sfm") / "sparse",
+            j.dir("sfm") / "georef.json",
+            j.pos,
+            j.cameras,
+            *j.renderer_inputs(),
+        ],
+        lambda j: [j.dir("plan") / "views.json"],
+    ),
+    "render_views": StageDef(
+        "render_views",
+        _render_views,
+        lambda j: {
+            "views": j.settings["views"],
+            "renderer": j.settings["renderer"],
+            "backend": j.settings["splat_backend"],
+        },
+        lambda j: [j.dir("plan") / "views.json", *j.renderer_inputs()],
+        lambda j: [j.dir("views") / "views.json"],
+    ),
+    "match_views": StageDef(
+        "match_views",
+        _match_views,
+        lambda j: {"matching": j.match_conf()},
+        lambda j: [j.dir("views") / "views.json", _images(j, "aerial"), _images(j, "ground")],
+        lambda j: [j.dir("matches"), j.features_path],
+    ),
+    "reduce": StageDef(
+        "reduce",
+        _reduce,
+        lambda j: {"transfer": j.transfer_conf()},
+        lambda j: [
+            j.dir("views") / "views.json",
+            j.dir("matches"),
+            j.dir("sfm") / "sparse",
+            j.dir("sfm") / "georef.json",
+            j.pos,
+            j.cameras,
+        ],
+        lambda j: [
+            j.dir("transfer") / f for f in ("matches.h5", "database.db", "ground_poses.json", "report.json")
+        ],
+    ),
+    "combined_sfm": StageDef(
+        "combined_sfm",
+        _combined_sfm,
+        lambda j: {"combined": j.combined_conf(), "matching": j.match_conf()},
+        lambda j: [
+            j.dir("sfm") / "sparse",
+            j.dir("sfm") / "database.db",
+            j.dir("sfm") / "georef.json",
+            j.dir("transfer") / "matches.h5",
+            j.dir("transfer") / "ground_poses.json",
+            j.features_path,
+            j.pos,
+            j.cameras,
+        ],
+        lambda j: [j.dir("combined") / "sparse", j.dir("combined") / "report.json"],
+    ),
+}
+assert tuple(REGISTRY) == STAGES, "the registry must follow shared.job_options.STAGES"
+
+
+# -- runner --------------------------------------------------------------------------------------
+def run_stage(job: Job, stage: str, progress: Progress | None = None, force: bool = False) -> dict:
+    """Run one stage unless it is up to date; returns its marker (with "skipped": True when skipped)."""
+    sd = REGISTRY[stage]
+    prog = progress or (lambda s, f, m: None)
+    if not force and is_done(job, stage):
+        m = read_marker(job, stage) or {}
+        prog(stage, 1.0, "up to date")
+        return {**m, "skipped": True}
+    prog(stage, 0.0, "started")
+    t0 = time.perf_counter()
+    summary = sd.run(job, lambda f, m: prog(stage, float(min(max(f, 0.0), 1.0)), m))
+    missing = [str(p) for p in sd.outputs(job) if not Path(p).exists()]
+    if missing:
+        raise RuntimeError(f"stage {stage} finished without its outputs: {missing}")
+    marker = {
+        "stage": stage,
+        "fingerprint": fingerprint(sd.conf(job), sd.inputs(job), job.root),
+        "outputs": [str(p) for p in sd.outputs(job)],
+        "seconds": round(time.perf_counter() - t0, 2),
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "summary": summary,
+    }
+    job.stages_dir.mkdir(parents=True, exist_ok=True)
+    tmp = marker_path(job, stage).with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(marker, indent=1, default=str))
+    tmp.replace(marker_path(job, stage))
+    prog(stage, 1.0, "finished")
+    return {**marker, "skipped": False}
+
+
+def mark_done(job: Job, stage: str, summary: dict | None = None) -> dict:
+    """Record a stage as done with the outputs already in place (e.g. an aerial model or a 3DGS model
+    made elsewhere and copied into the job folder); its marker gets the current input fingerprint."""
+    sd = REGISTRY[stage]
+    missing = [str(p) for p in sd.outputs(job) if not Path(p).exists()]
+    if missing:
+        raise FileNotFoundError(f"stage {stage}: outputs missing: {missing}")
+    marker = {
+        "stage": stage,
+        "fingerprint": fingerprint(sd.conf(job), sd.inputs(job), job.root),
+        "outputs": [str(p) for p in sd.outputs(job)],
+        "seconds": 0.0,
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "summary": {**(summary or {}), "adopted": True},
+    }
+    job.stages_dir.mkdir(parents=True, exist_ok=True)
+    marker_path(job, stage).write_text(json.dumps(marker, indent=1, default=str))
+    return marker
+
+
+def run(
+    job: Job | str | Path,
+    stages: list[str] | None = None,
+    from_stage: str | None = None,
+    progress: Progress | None = None,
+    force: bool = False,
+) -> dict[str, dict]:
+    """Run the job's stages in order (job.options.stages, or `stages`, from `from_stage` on; stages
+    before it must be done). Returns {stage: marker} with "skipped" set for the stages that were up to
+    date."""
+    job = job if isinstance(job, Job) else Job.load(job)
+    if stages is None:
+        stages = job.options.stages_from(from_stage)
+    elif from_stage is not None:
+        stages = stages[stages.index(from_stage) :]
+    unknown = [s for s in stages if s not in REGISTRY]
+    if unknown:
+        raise ValueError(f"unknown stages {unknown}; stages are {list(STAGES)}")
+    results = {}
+    for s in sorted(stages, key=STAGES.index):
+        results[s] = run_stage(job, s, progress, force=force and (from_stage is None or s == from_stage))
+    return results
+
+
+def status(job: Job | str | Path) -> dict[str, str]:
+    """{stage: "done" | "stale" | "pending"} of a job folder."""
+    job = job if isinstance(job, Job) else Job.load(job)
+    out = {}
+    for s in STAGES:
+        if read_marker(job, s) is None:
+            out[s] = "pending"
+        else:
+            out[s] = "done" if is_done(job, s) else "stale"
+    return out

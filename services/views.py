@@ -1,0 +1,282 @@
+"""Rendering the planned intermediate views: colour PNG, z-depth and the view's camera and pose.
+
+    from services import views
+    r = views.SplatRenderer("job/splat")                    # the product path: the 3DGS model
+    views.main(views.confs["default"], "plan/views.json", "job/views", r)
+
+Outputs under the output folder: NAME.png (RGB), NAME.depth.npy (float32 z-depth in metres along the
+optical axis, 0 where nothing reliable was rendered) and views.json (the plan, each view with its
+`image` and `depth` files relative to the folder, and render statistics).
+
+Renderers follow the `Renderer` protocol: `render(camera, pose) -> (rgb uint8 (H, W, 3), depth
+float32 (H, W))`. `SplatRenderer` renders the 3DGS model of services.splat. `GroundTruthRenderer`
+ray-casts the true synthetic scene (services.synth) in the aerial model's frame: it is for tests and
+for measuring the upper bound of the method, never the product path.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from services.colmap_model import Camera, Pose
+from shared.logging import stage
+
+logger = logging.getLogger("midview.views")
+
+confs: dict[str, dict[str, Any]] = {
+    "default": {
+        "min_alpha": 0.5,  # 3DGS: pixels less opaque than this get no depth
+        "max_depth_m": 2000.0,
+    },
+}
+
+Progress = Callable[[float, str], None]
+
+
+class Renderer(Protocol):
+    """Renders any pinhole camera of the aerial model's frame."""
+
+    name: str
+
+    def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """-> (rgb uint8 (H, W, 3), z-depth float32 (H, W), 0 where nothing was hit)."""
+        ...
+
+
+# -- 3DGS --------------------------------------------------------------------------------------
+class SplatRenderer:
+    """The 3DGS model of services.splat (a training folder, checkpoint or .ply)."""
+
+    name = "splat"
+
+    def __init__(self, model_path: str | Path, backend: str = "auto", min_alpha: float = 0.5):
+        from services.splat import load_model
+
+        self.model_path = Path(model_path)
+        self.model = load_model(self.model_path)
+        self.backend = backend
+        self.min_alpha = float(min_alpha)
+
+    def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        from services.splat import render
+
+        out = render(self.model, camera, pose, backend=self.backend)
+        rgb = np.clip(np.rint(out["color"] * 255.0), 0, 255).astype(np.uint8)
+        depth = np.where(out["alpha"] >= self.min_alpha, out["depth"], 0.0).astype(np.float32)
+        return rgb, depth
+
+
+# -- ground truth (tests, upper bound) -----------------------------------------------------------
+def _kabsch(src: np.ndarray, tgt: np.ndarray, scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
+    """tgt ~ s R src + t (least squares)."""
+    ms, mt = src.mean(0), tgt.mean(0)
+    a, b = src - ms, tgt - mt
+    U, S, Vt = np.linalg.svd(b.T @ a)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / max((a**2).sum(), 1e-12)) if scale else 1.0
+    return s, R, mt - s * R @ ms
+
+
+class GroundTruthRenderer:
+    """Ray-casts the true scene of a synthetic scene folder (services.synth) with the aerial lighting.
+
+    Views are given in the aerial model's frame; `model_sparse` (the aerial SfM model) aligns it to the
+    truth with a similarity fitted on the aerial camera centres, so that renders and depths agree with the
+    model the way a perfect 3DGS of that model would. Without it, the frames are related through WGS84
+    (`frame`: the model's LocalFrame; identity when None).
+    """
+
+    name = "gt"
+
+    def __init__(
+        self,
+        scene_dir: str | Path,
+        model_sparse: str | Path | None = None,
+        frame: Any = None,
+        supersample: int = 1,
+    ):
+        from services.synth.cameras import aerial_views, ground_views
+        from services.synth.imaging import photo_atlas
+        from services.synth.pipeline import Renderer as SynthRenderer
+        from services.synth.pipeline import light_array
+        from services.synth.scene import make_scene
+
+        self.scene_dir = Path(scene_dir)
+        meta = json.loads((self.scene_dir / "gt" / "scene.json").read_text())
+        conf, seed = meta["conf"], int(meta["seed"])
+        tex = meta.get("textures")
+        tex_dir = Path(tex) if tex else None
+        if tex_dir is not None and not tex_dir.is_dir():
+            raise FileNotFoundError(f"the scene's textures {tex_dir} are missing: cannot re-render it")
+        # the same random streams, in the same order, as services.synth.pipeline.main
+        r_scene, r_cam, _ = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
+        photos = photo_atlas(tex_dir)
+        scene = make_scene(conf["scene"], r_scene, photo=tex_dir is not None)
+        aerial = aerial_views(conf["aerial"], scene, r_cam)
+        ground = ground_views(conf["ground"], scene, r_cam)
+        scene = scene.drop_clutter_near(np.array([g.C for g in ground]), conf["render"]["clearance"])
+        self._check_views(aerial + ground)
+        self.renderer = SynthRenderer(scene, photos, seed, conf["render"]["grid_cell"])
+        self.light = light_array(conf["lighting"]["aerial"])
+        self.lighting = conf["lighting"]["aerial"]
+        self.seed = seed
+        self.ss = int(supersample)
+        self.s, self.R, self.t = self._alignment(model_sparse, frame)
+
+    def _check_views(self, views: list) -> None:
+        from services.colmap_model import read_model
+
+        _, poses = read_model(self.scene_dir / "gt" / "sparse")
+        for v in views[:3]:
+            if v.name in poses and np.linalg.norm(poses[v.name].center - v.C) > 1e-3:
+                raise RuntimeError(f"{self.scene_dir}: the rebuilt scene does not match gt/sparse ({v.name})")
+
+    def _alignment(self, model_sparse, frame) -> tuple[float, np.ndarray, np.ndarray]:
+        """truth_from_model similarity."""
+        if model_sparse is not None:
+            from services.colmap_model import read_model
+
+            _, est = read_model(model_sparse)
+            _, gt = read_model(self.scene_dir / "gt" / "sparse")
+            names = sorted(n for n in est if n in gt)
+            if len(names) >= 3:
+                src = np.array([est[n].center for n in names])
+                tgt = np.array([gt[n].center for n in names])
+                s, R, t = _kabsch(src, tgt, scale=True)
+                res = np.linalg.norm(s * src @ R.T + t - tgt, axis=1)
+                logger.info(
+                    "ground-truth renderer: model aligned to the truth on %d cameras (scale %.5f, "
+                    "residual median %.3f m)",
+                    len(names),
+                    s,
+                    float(np.median(res)),
+                )
+                return s, R, t
+        if frame is not None:
+            from services.pos import LocalFrame
+
+            meta = json.loads((self.scene_dir / "gt" / "scene.json").read_text())
+            truth = LocalFrame(**meta["origin"])
+            P = np.array([[0, 0, 0], [100, 0, 0], [0, 100, 0], [0, 0, 100]], float)
+            Q = truth.from_wgs84(*frame.to_wgs84(P))
+            s, R, t = _kabsch(P, Q, scale=False)
+            return 1.0, R, t
+        return 1.0, np.eye(3), np.zeros(3)
+
+    def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        from services.synth.cameras import View
+        from services.synth.imaging import develop
+
+        if camera.model != "PINHOLE":
+            raise ValueError("the ground-truth renderer renders PINHOLE cameras only")
+        C = self.s * self.R @ pose.center + self.t
+        Rwc = self.R @ pose.R.T
+        lin, depth = self.renderer(View("view", "aerial", Rwc, C), camera, self.light, self.ss)
+        # sensor noise seeded by the pose: the same view renders to the same bytes whatever the order
+        key = np.frombuffer(np.round(np.concatenate([pose.R.ravel(), pose.t]), 6).tobytes(), np.uint32)
+        rgb = develop(lin, self.lighting, np.random.default_rng([self.seed, 7, *key[:16].tolist()]))
+        return rgb, (depth / self.s).astype(np.float32)
+
+
+def make_renderer(kind: str, **kwargs: Any) -> Renderer:
+    """ "splat" (model_path, backend) or "gt" (scene_dir, model_sparse)."""
+    if kind == "splat":
+        return SplatRenderer(
+            kwargs["model_path"], kwargs.get("backend", "auto"), kwargs.get("min_alpha", 0.5)
+        )
+    if kind == "gt":
+        return GroundTruthRenderer(kwargs["scene_dir"], kwargs.get("model_sparse"))
+    raise ValueError(f"unknown renderer {kind!r} (splat, gt)")
+
+
+def depth_fn(renderer: Renderer) -> Callable[[Camera, Pose], np.ndarray]:
+    """The renderer as a depth probe for services.viewpoints."""
+    return lambda camera, pose: renderer.render(camera, pose)[1]
+
+
+# -- files ---------------------------------------------------------------------------------------
+def image_file(name: str) -> str:
+    return f"{name}.png"
+
+
+def depth_file(name: str) -> str:
+    return f"{name}.depth.npy"
+
+
+def read_render(views_dir: str | Path, view: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb uint8, depth float32) of a rendered view (an entry of views/views.json)."""
+    views_dir = Path(views_dir)
+    bgr = cv2.imread(str(views_dir / view.get("image", image_file(view["name"]))), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise FileNotFoundError(f"{views_dir}: render of view {view['name']} missing")
+    depth = np.load(views_dir / view.get("depth", depth_file(view["name"])))
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), depth
+
+
+def main(
+    conf: dict,
+    views_json: str | Path,
+    out_dir: str | Path,
+    renderer: Renderer,
+    progress: Progress | None = None,
+) -> Path:
+    """Render every view of `views_json` into out_dir; returns out_dir/views.json. Views whose files
+    are already there (from the same pose) are not rendered again."""
+    conf = {**confs["default"], **(conf or {})}
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    doc = json.loads(Path(views_json).read_text())
+    old = {}
+    if (out_dir / "views.json").is_file():
+        try:
+            old = {v["name"]: v for v in json.loads((out_dir / "views.json").read_text())["views"]}
+        except (ValueError, KeyError):
+            old = {}
+    with stage(f"render:{getattr(renderer, 'name', 'renderer')}", logger):
+        t0 = time.perf_counter()
+        n = len(doc["views"])
+        for i, v in enumerate(doc["views"]):
+            name = v["name"]
+            img, dep = out_dir / image_file(name), out_dir / depth_file(name)
+            prev = old.get(name)
+            if (
+                prev is not None
+                and img.is_file()
+                and dep.is_file()
+                and prev.get("pose") == v["pose"]
+                and prev.get("camera") == v["camera"]
+                and prev.get("renderer") == getattr(renderer, "name", "")
+            ):
+                v.update({k: prev[k] for k in ("image", "depth", "render") if k in prev})
+                v["renderer"] = prev.get("renderer")
+                continue
+            t1 = time.perf_counter()
+            cam = Camera(**v["camera"])
+            pose = Pose(np.asarray(v["pose"]["R"], float), np.asarray(v["pose"]["t"], float))
+            rgb, depth = renderer.render(cam, pose)
+            depth = np.where(np.isfinite(depth) & (depth > 0) & (depth < conf["max_depth_m"]), depth, 0.0)
+            depth = depth.astype(np.float32)
+            cv2.imwrite(str(img), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            np.save(dep, depth)
+            v["image"], v["depth"] = img.name, dep.name
+            v["renderer"] = getattr(renderer, "name", "")
+            v["render"] = {
+                "seconds": round(time.perf_counter() - t1, 3),
+                "valid_depth": float((depth > 0).mean()),
+            }
+            if progress is not None:
+                progress((i + 1) / max(n, 1), f"rendered {name}")
+        doc["rendered"] = {"renderer": getattr(renderer, "name", ""), "seconds": time.perf_counter() - t0}
+        path = out_dir / "views.json"
+        path.write_text(json.dumps(doc, indent=1))
+        logger.info("%d views rendered in %.1f s -> %s", n, time.perf_counter() - t0, out_dir)
+    return path

@@ -1,0 +1,131 @@
+"""The pipeline (services/pipeline.py) end to end on the `tiny` synthetic preset, with the ground-truth
+renderer standing in for 3DGS (the 3DGS stages are tested in test_splat*.py), and its job folder
+mechanics: markers, fingerprints, skipping and resuming.
+
+The tiny preset is made a little less tiny (two more aerial stations, so that its obliques overlap; ground
+images of 480x360) and matched with SIFT, so that the whole run takes about a minute on 2 cores; it is a
+test of the mechanics, not of the matching quality (bench/method.py measures that on `small`)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from services import pipeline
+from shared.job_options import STAGES
+from shared.matchfile import MatchFile
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    import copy
+
+    from services import synth
+
+    conf = copy.deepcopy(synth.confs["tiny"])
+    conf["aerial"]["grid"] = [2, 2]
+    conf["ground"].update(width=480, height=360, f=351.0)
+    out = tmp_path_factory.mktemp("tiny") / "scene"
+    return synth.main(conf, out, seed=0)
+
+
+@pytest.fixture(scope="module")
+def tiny_job(tiny_scene, tmp_path_factory):
+    root = tmp_path_factory.mktemp("job") / "job"
+    job = pipeline.Job.create(
+        root,
+        tiny_scene / "images" / "aerial",
+        tiny_scene / "images" / "ground",
+        tiny_scene / "pos.csv",
+        tiny_scene / "cameras.json",
+        options={
+            "view_planner": "ground-aware",
+            "views_per_ground_image": 2,
+            "matcher": "sift",
+            "max_keypoints": 1024,
+        },
+        settings={
+            "renderer": "gt",
+            "scene": str(tiny_scene),
+            "torch_threads": 1,
+            "sfm": {"features": {"max_num_features": 2048}},
+        },
+    )
+    events = []
+    results = pipeline.run(job, progress=lambda s, f, m: events.append((s, f, m)))
+    return job, results, events
+
+
+def test_stages_complete_and_outputs_exist(tiny_job):
+    job, results, events = tiny_job
+    assert list(results) == list(STAGES)
+    assert not any(r["skipped"] for r in results.values())
+    for s in STAGES:
+        assert pipeline.is_done(job, s)
+        for p in pipeline.REGISTRY[s].outputs(job):
+            assert p.exists(), p
+    # progress: every stage starts at 0 and ends at 1
+    for s in STAGES:
+        fr = [f for st, f, _ in events if st == s]
+        assert fr[0] == 0.0 and fr[-1] == 1.0 and all(0.0 <= f <= 1.0 for f in fr)
+    assert pipeline.status(job) == {s: "done" for s in STAGES}
+
+
+def test_matches_were_produced(tiny_job):
+    job, _, _ = tiny_job
+    views = json.loads((job.dir("views") / "views.json").read_text())["views"]
+    assert len(views) >= 4 and all((job.dir("views") / v["image"]).is_file() for v in views)
+    assert len({v["source"] for v in views}) >= 3  # views planned for (nearly) every ground image
+    assert sorted(p.stem for p in job.dir("matches").glob("*.h5")) == sorted(v["name"] for v in views)
+    n_render = 0
+    for p in job.dir("matches").glob("*.h5"):
+        with MatchFile(p) as mf:
+            n_render += sum(int(pm.inliers.sum()) for pm in mf.iter_pairs())
+    assert n_render > 100
+    with MatchFile(job.dir("transfer") / "matches.h5") as mf:
+        pairs = list(mf.iter_pairs())
+        assert pairs and all(
+            pm.name0.startswith("aerial/") and pm.name1.startswith("ground/") for pm in pairs
+        )
+        assert sum(len(pm.matches) for pm in pairs) > 0
+        assert set(mf.views) <= {v["name"] for v in views}
+    poses = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
+    assert set(poses) <= {f"ground/G000{i}.jpg" for i in range(1, 5)}
+    rep = json.loads((job.dir("combined") / "report.json").read_text())
+    assert rep["num_registered"]["aerial"] == rep["num_images"]["aerial"] == 20
+    assert rep["num_images"]["ground"] == 4
+
+
+def test_rerun_skips_every_stage(tiny_job):
+    job, _, _ = tiny_job
+    again = pipeline.run(pipeline.Job.load(job.root))
+    assert all(r["skipped"] for r in again.values())
+
+
+def test_failed_stage_resumes(tiny_job, monkeypatch):
+    job, _, _ = tiny_job
+    (job.stages_dir / "combined_sfm.json").unlink()  # as if it had failed before writing its marker
+    assert pipeline.status(job)["combined_sfm"] == "pending"
+    res = pipeline.run(job)
+    assert [s for s, r in res.items() if not r["skipped"]] == ["combined_sfm"]
+
+
+def test_a_changed_conf_reruns_that_stage_and_the_ones_after(tiny_job, monkeypatch):
+    job, _, _ = tiny_job
+    job2 = pipeline.Job.load(job.root)
+    job2.settings["transfer"] = {"aerial_px": 5.0}
+    assert pipeline.is_done(job2, "match_views") and not pipeline.is_done(job2, "reduce")
+    calls = []
+    monkeypatch.setitem(
+        pipeline.REGISTRY,
+        "combined_sfm",
+        pipeline.StageDef(
+            "combined_sfm",
+            lambda j, r: calls.append("combined") or {},
+            *[getattr(pipeline.REGISTRY["combined_sfm"], f) for f in ("conf", "inputs", "outputs")],
+        ),
+    )
+    res = pipeline.run(job2, stages=["match_views", "reduce", "combined_sfm"])
+    assert res["match_views"]["skipped"] and not res["reduce"]["skipped"]
+    assert calls == ["combined"]  # its input (the reducer's output) changed

@@ -1,0 +1,187 @@
+"""Intermediate viewpoints (services/viewpoints.py) on constructed cameras."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services import viewpoints as vp
+from services.colmap_model import Camera, Pose
+from services.pos import ypr_to_matrix
+
+CAM = Camera("PINHOLE", 800, 600, [700.0, 700.0, 400.0, 300.0])
+GCAM = Camera("PINHOLE", 640, 480, [500.0, 500.0, 320.0, 240.0])
+
+
+def pose_ypr(center, yaw, pitch, roll=0.0) -> Pose:
+    return Pose.from_center(ypr_to_matrix(yaw, pitch, roll), np.asarray(center, float))
+
+
+def principal_point_error(camera: Camera, pose: Pose, X: np.ndarray) -> float:
+    uv, z = pose.project(camera.K, np.asarray(X, float)[None])
+    assert z[0] > 0
+    return float(np.linalg.norm(uv[0] - camera.K[:2, 2]))
+
+
+@pytest.mark.parametrize("yaw", [0.0, 90.0, 213.0])
+def test_paper_rule_oblique(yaw):
+    # a 45 degree oblique 60 m above a target on the ground
+    T = np.array([10.0, -5.0, 0.0])
+    h = np.array([np.sin(np.radians(yaw)), np.cos(np.radians(yaw)), 0.0])
+    pose_a = pose_ypr(T - 60.0 * h + [0, 0, 60.0], yaw, -45.0)
+    assert principal_point_error(CAM, pose_a, T) < 1e-6
+    pose_r, beta = vp.paper_viewpoint(pose_a, T, 0.5)
+    C_a, C_r = pose_a.center, pose_r.center
+    np.testing.assert_allclose(C_r[:2], C_a[:2], atol=1e-9)  # moved vertically only
+    assert C_r[2] == pytest.approx(30.0)  # half the height above the target
+    assert principal_point_error(CAM, pose_r, T) < 1e-6  # the target is on the principal ray again
+    assert beta == pytest.approx(45.0 - np.degrees(np.arctan2(30.0, 60.0)), abs=1e-6)
+    # a rotation about the camera's own x axis: x unchanged, the axis tilted up (towards the horizon)
+    np.testing.assert_allclose(pose_r.R[0], pose_a.R[0], atol=1e-9)
+    assert vp.pitch_deg(pose_r) > vp.pitch_deg(pose_a)
+    assert vp.angle_deg(pose_r.R[2], pose_a.R[2]) == pytest.approx(beta, abs=1e-6)
+
+
+def test_paper_rule_height_is_above_the_target():
+    T = np.array([0.0, 0.0, 12.0])  # a roof 12 m up
+    pose_a = pose_ypr([0.0, -40.0, 72.0], 0.0, -np.degrees(np.arctan2(60.0, 40.0)))
+    pose_r, _ = vp.paper_viewpoint(pose_a, T, 0.5)
+    assert pose_r.center[2] == pytest.approx(12.0 + 30.0)  # not half of 72 m
+    assert principal_point_error(CAM, pose_r, T) < 1e-6
+
+
+def test_paper_rule_nadir():
+    T = np.array([3.0, 4.0, 0.0])
+    pose_a = pose_ypr([3.0, 4.0, 80.0], 30.0, -90.0)
+    pose_r, beta = vp.paper_viewpoint(pose_a, T, 0.5)
+    assert beta == pytest.approx(0.0, abs=1e-9)
+    assert pose_r.center[2] == pytest.approx(40.0)
+    np.testing.assert_allclose(pose_r.R, pose_a.R, atol=1e-12)  # a lower nadir view
+    assert principal_point_error(CAM, pose_r, T) < 1e-6
+
+
+def test_paper_rule_rolled_camera_keeps_the_target_centred():
+    T = np.array([0.0, 0.0, 0.0])
+    pose_a = pose_ypr([0.0, -50.0, 50.0], 0.0, -45.0, roll=4.0)
+    # its principal ray meets the ground somewhere near T: use that point as the target
+    d = vp.optical_axis(pose_a)
+    T = pose_a.center + d * (-pose_a.center[2] / d[2])
+    pose_r, beta = vp.paper_viewpoint(pose_a, T, 0.5)
+    assert principal_point_error(CAM, pose_r, T) < 1e-6
+    assert 10.0 < beta < 25.0
+
+
+def test_ray_target_points_takes_the_first_surface():
+    C, d = np.zeros(3), np.array([0.0, 1.0, 0.0])
+    rng = np.random.default_rng(0)
+    wall = np.c_[rng.uniform(-0.2, 0.2, 30), np.full(30, 20.0), rng.uniform(-0.2, 0.2, 30)]
+    behind = np.c_[rng.uniform(-0.2, 0.2, 10), np.full(10, 35.0), rng.uniform(-0.2, 0.2, 10)]
+    off_ray = np.c_[np.full(20, 5.0), np.full(20, 10.0), np.zeros(20)]
+    t = vp.ray_target_points(C, d, np.concatenate([wall, behind, off_ray]))
+    assert t == pytest.approx(20.0)
+    assert vp.ray_target_points(C, d, off_ray) is None
+
+
+def make_scene(ground_poses: dict[str, Pose]) -> vp.Scene:
+    """Four 45-degree obliques and a nadir 60 m up around the origin; no sparse points; terrain z = 0."""
+    aerial_poses = {}
+    for k, yaw in enumerate((0.0, 90.0, 180.0, 270.0)):
+        h = np.array([np.sin(np.radians(yaw)), np.cos(np.radians(yaw)), 0.0])
+        aerial_poses[f"aerial/A{k + 1:04d}.jpg"] = pose_ypr(-60.0 * h + [0, 0, 60.0], yaw, -45.0)
+    aerial_poses["aerial/A0005.jpg"] = pose_ypr([0.0, 0.0, 60.0], 0.0, -90.0)
+    return vp.Scene(
+        {n: CAM for n in aerial_poses},
+        aerial_poses,
+        {n: GCAM for n in ground_poses},
+        ground_poses,
+        {n: (2.5, 4.0, 2.0) for n in ground_poses},
+        np.zeros((0, 3)),
+        0.0,
+    )
+
+
+def test_ground_aware_planner():
+    ground = {
+        "ground/G0001.jpg": pose_ypr([0.0, -15.0, 1.6], 0.0, 5.0),  # looking north at the origin
+        "ground/G0002.jpg": pose_ypr([15.0, 2.0, 1.7], 270.0, 0.0),  # looking west
+    }
+    scene = make_scene(ground)
+    conf = vp._merge(vp.confs["ground-aware"], {"views_per_ground_image": 3})
+    views = vp.plan(scene, conf)
+    assert views == sorted(views, key=lambda v: v.name)
+    by_source = {g: [v for v in views if v.source == g] for g in ground}
+    assert all(len(v) == 3 for v in by_source.values())
+    z_aerial = max(p.center[2] for p in scene.aerial_poses.values())
+    for v in views:
+        assert v.planner == "ground-aware"
+        # it looks at its target
+        assert principal_point_error(v.camera, v.pose, v.target) < 1e-6
+        # between the ground camera and the aerial cameras in height, and above its ground camera
+        z_g = ground[v.source].center[2]
+        assert z_g < v.center[2] < z_aerial
+        assert v.center[2] - z_g == pytest.approx(v.meta["height_m"])
+        # its own ground image first among the candidates; oblique aerial candidates only
+        assert v.ground[0] == v.source
+        assert v.aerial and "aerial/A0005.jpg" not in v.aerial
+        # the image x axis is level
+        assert abs(v.pose.R[0, 2]) < 1e-9
+    # the target is about `look_ahead_m` ahead of the ground camera (no points, no depth: look-ahead)
+    v = by_source["ground/G0001.jpg"][0]
+    assert np.linalg.norm(v.target - ground["ground/G0001.jpg"].center) == pytest.approx(15.0)
+    # the north-looking ground camera is best served by the north-looking oblique (A0001)
+    assert v.aerial[0] == "aerial/A0001.jpg"
+
+
+def test_ground_aware_uses_the_depth_probe_and_skips_occluded_views():
+    ground = {"ground/G0001.jpg": pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)}
+    scene = make_scene(ground)
+
+    def depth_fn(camera: Camera, pose: Pose) -> np.ndarray:
+        # a wall at y = 0 (north of the ground camera) and a roof over the camera (z = 8, y < -5)
+        c, d = pose.center, pose.R[2]
+        t_wall = (0.0 - c[1]) / d[1] if d[1] > 1e-9 else np.inf
+        t_roof = (8.0 - c[2]) / d[2] if (c[2] > 8.0 and d[2] < 0) else np.inf
+        hit_roof = np.isfinite(t_roof) and (c + t_roof * d)[1] < -5.0
+        t = min(t_wall, t_roof if hit_roof else np.inf)
+        z = t * (d @ d) if np.isfinite(t) else 0.0
+        return np.full((camera.height, camera.width), z, np.float32)
+
+    scene.depth_fn = depth_fn
+    conf = vp._merge(vp.confs["ground-aware"], {"views_per_ground_image": 8})
+    views = vp.plan(scene, conf)
+    assert views
+    for v in views:
+        assert v.target[1] == pytest.approx(0.0, abs=1e-6)  # the target is on the wall
+        assert v.meta["target_from"] == "depth"
+        if v.center[2] > 8.0:  # nothing planned behind the roof
+            c, d = v.center, v.target - v.center
+            assert (c + (8.0 - c[2]) / d[2] * d)[1] >= -5.0
+    assert {v.meta["placement"] for v in views} >= {"above"}
+
+
+def test_paper_planner_selects_views_per_ground_image():
+    ground = {"ground/G0001.jpg": pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)}
+    scene = make_scene(ground)
+    conf = vp._merge(vp.confs["paper"], {"views_per_ground_image": 2})
+    views = vp.plan(scene, conf)
+    assert 1 <= len(views) <= 2
+    for v in views:
+        assert v.planner == "paper"
+        assert "ground/G0001.jpg" in v.ground
+        assert v.source in scene.aerial_poses and v.aerial[0] == v.source
+        assert principal_point_error(v.camera, v.pose, v.target) < 1e-6
+        assert v.center[2] == pytest.approx(30.0)  # half of 60 m above the terrain target
+
+
+def test_views_json_round_trip(tmp_path):
+    ground = {"ground/G0001.jpg": pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)}
+    views = vp.plan(make_scene(ground), vp.confs["both"])
+    path = vp.write_views(tmp_path / "views.json", views, {"planner": "both"})
+    back, doc = vp.read_views(path)
+    assert doc["planner"] == "both"
+    assert [v.name for v in back] == [v.name for v in views]
+    for a, b in zip(views, back, strict=True):
+        np.testing.assert_allclose(a.pose.R, b.pose.R)
+        np.testing.assert_allclose(a.pose.t, b.pose.t)
+        assert a.camera == b.camera and a.aerial == b.aerial and a.ground == b.ground
+    assert {v.planner for v in views} == {"paper", "ground-aware"}
