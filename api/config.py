@@ -11,9 +11,6 @@ MB = 1024 * 1024
 
 
 class ApiSettings(Settings):
-    dispatcher: str = Field(
-        "embedded", description="How jobs reach the workers: embedded (in-process thread) or celery"
-    )
     bootstrap_api_key: str | None = Field(
         None,
         description="An API key (mv_...) created at startup for bootstrap_tenant if missing; "

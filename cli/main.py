@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from cli import evaluate, match, pos, sfm, splat, synth
+from cli import evaluate, match, pos, run, serve, sfm, splat, synth, worker
 from shared.config import get_settings
 from shared.logging import setup_logging
 
@@ -27,6 +27,10 @@ def _root(
 
 app.command("synth")(synth.synth)
 app.command("sfm")(sfm.sfm)
+app.command("run")(run.run)
+app.command("demo")(run.demo)
+app.command("serve")(serve.serve)
+app.command("worker")(worker.worker)
 app.add_typer(evaluate.app, name="eval")
 app.add_typer(match.app, name="match")
 app.add_typer(pos.app, name="pos")

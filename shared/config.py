@@ -34,6 +34,21 @@ class Settings(BaseSettings):
     s3_secret_key: str | None = Field(None, description="S3 secret key")
     s3_presign_expiry_s: int = Field(3600, ge=1, le=7 * 24 * 3600, description="Lifetime of presigned URLs")
 
+    # workers (workers/)
+    dispatcher: str = Field(
+        "embedded",
+        description="How jobs reach the workers: embedded (a thread of the API process) or celery",
+    )
+    broker_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker (Redis) URL")
+    result_backend: str = Field("", description="Celery result backend URL; empty: the broker URL")
+    work_dir: Path | None = Field(None, description="Workers' local job folders; default DATA_DIR/work")
+    stall_timeout_s: float = Field(
+        900.0, gt=0, description="A job without progress for this long and no live task is re-dispatched"
+    )
+    task_max_retries: int = Field(
+        5, ge=0, description="Retries of a task after a transient error (storage, database, broker)"
+    )
+
     @model_validator(mode="after")
     def _derive_paths(self) -> Settings:
         """Fill the defaults that live under data_dir."""
@@ -41,6 +56,10 @@ class Settings(BaseSettings):
             self.database_url = f"sqlite:///{(self.data_dir / 'midview.db').as_posix()}"
         if self.storage_root is None:
             self.storage_root = self.data_dir / "storage"
+        if not self.result_backend:
+            self.result_backend = self.broker_url
+        if self.work_dir is None:
+            self.work_dir = self.data_dir / "work"
         return self
 
 

@@ -126,3 +126,161 @@ def _jpeg(width=64, height=48, seed=0, padding=0):
 def make_jpeg():
     """make_jpeg(width=64, height=48, seed=0, padding=0) -> JPEG bytes."""
     return _jpeg
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Workers (tests/test_workers.py, tests/test_service_e2e.py): the service on PostgreSQL + SeaweedFS + Redis
+# with a real Celery worker process, and the synthetic `tiny` survey it works on.
+
+
+@pytest.fixture(scope="session")
+def tiny_survey(tmp_path_factory):
+    """The synthetic `tiny` preset (seed 0): images/{aerial,ground}, pos.csv, cameras.json, gt/."""
+    from services import synth
+
+    return synth.main(synth.confs["tiny"], tmp_path_factory.mktemp("survey") / "tiny", seed=0)
+
+
+@pytest.fixture(scope="session")
+def service_settings(request, tmp_path_factory):
+    """ApiSettings of the distributed service: a fresh migrated PostgreSQL database, the SeaweedFS
+    bucket, the test Redis db as Celery broker and result backend, dispatcher celery."""
+    from shared.db.session import upgrade_database
+
+    s3 = request.getfixturevalue("s3_server")
+    broker = request.getfixturevalue("redis_url")
+    folder = tmp_path_factory.mktemp("service")
+    url = request.getfixturevalue("postgres_server").create_database()
+    upgrade_database(url)
+    return ApiSettings(
+        data_dir=folder / "api",
+        work_dir=folder / "work-api",
+        upload_tmp_dir=str(folder),
+        database_url=url,
+        storage="s3",
+        s3_endpoint_url=s3.endpoint_url,
+        s3_bucket=s3.bucket,
+        s3_region=s3.region,
+        s3_access_key=s3.access_key,
+        s3_secret_key=s3.secret_key,
+        broker_url=broker,
+        result_backend=broker,
+        dispatcher="celery",
+        num_threads=1,
+        events_poll_s=0.05,
+    )
+
+
+def worker_environment(settings, work_dir):
+    """os.environ plus the MIDVIEW_* variables that give a worker process these settings."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
+    values = {
+        "DATA_DIR": settings.data_dir,
+        "WORK_DIR": work_dir,
+        "DATABASE_URL": settings.database_url,
+        "STORAGE": settings.storage,
+        "STORAGE_ROOT": settings.storage_root,
+        "S3_ENDPOINT_URL": settings.s3_endpoint_url,
+        "S3_BUCKET": settings.s3_bucket,
+        "S3_REGION": settings.s3_region,
+        "S3_ACCESS_KEY": settings.s3_access_key,
+        "S3_SECRET_KEY": settings.s3_secret_key,
+        "BROKER_URL": settings.broker_url,
+        "RESULT_BACKEND": settings.result_backend,
+        "NUM_THREADS": settings.num_threads,
+        "TASK_MAX_RETRIES": settings.task_max_retries,
+        "LOG_LEVEL": "INFO",
+    }
+    env.update({f"MIDVIEW_{k}": str(v) for k, v in values.items() if v is not None})
+    env["PYTHONUNBUFFERED"] = "1"
+    env["OMP_NUM_THREADS"] = "1"
+    return env
+
+
+class CeleryWorkerProcess:
+    """A `celery worker` subprocess of the test service (its log in `log`)."""
+
+    def __init__(self, proc, log, work_dir, hostname):
+        self.proc, self.log, self.work_dir, self.hostname = proc, log, work_dir, hostname
+
+    def text(self):
+        return self.log.read_text(errors="replace")
+
+    def alive(self):
+        return self.proc.poll() is None
+
+
+@pytest.fixture(scope="session")
+def celery_worker(service_settings, tmp_path_factory):
+    """A real Celery worker (prefork, one process) consuming gpu, cpu and reduce, started once."""
+    import sys
+    import time
+    import uuid
+    from pathlib import Path
+
+    from servers import _spawn, _stop, _tail
+
+    folder = tmp_path_factory.mktemp("celery-worker")
+    hostname = f"midview-test-{uuid.uuid4().hex[:6]}@%h"
+    log = folder / "worker.log"
+    args = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-Q", "gpu,cpu,reduce",
+            "-c", "1", "-P", "prefork", "-l", "INFO", "-n", hostname,
+            "--without-gossip", "--without-mingle", "--without-heartbeat"]  # fmt: skip
+    root = Path(__file__).resolve().parents[1]
+    proc = _spawn(args, log, cwd=root, env=worker_environment(service_settings, folder / "work"))
+    deadline = time.monotonic() + 60
+    while "ready." not in (log.read_text(errors="replace") if log.exists() else ""):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            _stop(proc)
+            pytest.fail(f"the Celery worker did not start:\n{_tail(log, 4000)}")
+        time.sleep(0.2)
+    try:
+        yield CeleryWorkerProcess(proc, log, folder / "work", hostname)
+    finally:
+        _stop(proc, timeout=15)
+
+
+def upload_survey(client, tenant, scene, storage, name=None, cameras=True):
+    """Create a project of tenant (id, headers) and upload a survey folder over HTTP (images of both
+    sets, pos.csv); the cameras.json goes to the project's storage key (workers.jobsync.cameras_key:
+    there is no API route for it yet). Returns the project id."""
+    import uuid
+
+    from workers.jobsync import cameras_key
+
+    headers = tenant.headers
+    r = client.post("/projects", json={"name": name or f"survey-{uuid.uuid4().hex[:8]}"}, headers=headers)
+    assert r.status_code == 201, r.text
+    project = r.json()
+    for image_set in ("aerial", "ground"):
+        files = [
+            ("files", (p.name, p.read_bytes(), "image/jpeg"))
+            for p in sorted((scene / "images" / image_set).iterdir())
+        ]
+        r = client.post(f"/projects/{project['id']}/images?set={image_set}", files=files, headers=headers)
+        assert r.status_code in (200, 201), r.text
+    pos = (scene / "pos.csv").read_bytes()
+    r = client.post(f"/projects/{project['id']}/pos", files={"file": ("pos.csv", pos)}, headers=headers)
+    assert r.status_code == 200, r.text
+    if cameras:
+        storage.put_bytes(cameras_key(tenant.id, project["id"]), (scene / "cameras.json").read_bytes())
+    return project["id"]
+
+
+def wait_for_job(client, headers, job_id, timeout_s, seen=None):
+    """Poll GET /jobs/{id} until a final status; returns the job; `seen` collects (status, stage,
+    progress) snapshots."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        job = client.get(f"/jobs/{job_id}", headers=headers).json()
+        if seen is not None:
+            seen.append((job["status"], job["current_stage"], job["progress"]))
+        if job["status"] in ("succeeded", "failed", "cancelled"):
+            return job
+        if time.monotonic() > deadline:
+            raise AssertionError(f"job {job_id} not finished after {timeout_s} s: {job}")
+        time.sleep(0.5)

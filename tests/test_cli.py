@@ -23,6 +23,10 @@ COMMANDS = [
     ["splat"],
     ["splat", "train"],
     ["splat", "render"],
+    ["run"],
+    ["demo"],
+    ["serve"],
+    ["worker"],
 ]
 
 

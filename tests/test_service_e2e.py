@@ -1,0 +1,330 @@
+"""The distributed service end to end: the synthetic `tiny` survey uploaded over HTTP (FastAPI app,
+PostgreSQL, SeaweedFS), a job run by a real Celery worker process through Redis, its results compared with
+the pipeline run in one process on the same input (what `midview run` does); then the job rerun from
+match_views with the worker's pool process killed (SIGKILL) in the middle of a view-matching task.
+
+Both sides run with MIDVIEW_NUM_THREADS=1 (COLMAP) and torch_threads 1: with one thread every stage is
+deterministic, so the results must be identical, not just close. (With several threads COLMAP's mapper
+is not: the number of 3D points of `tiny` varies by a few between runs.)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import types
+import uuid
+from pathlib import Path
+
+import pytest
+from conftest import upload_survey, wait_for_job, worker_environment
+
+from shared.job_options import STAGES
+
+pytestmark = pytest.mark.slow
+
+# small enough for `tiny` on 2 CPU cores (about a minute for the whole pipeline)
+OPTIONS = {
+    "view_planner": "ground-aware",
+    "views_per_ground_image": 1,
+    "splat_steps": 1000,  # 300 gives views that match nothing at all on `tiny`
+    "splat_max_width": 240,
+    "max_keypoints": 1024,
+    "seed": 0,
+}
+JOB_TIMEOUT_S = 360
+ROOT = Path(__file__).resolve().parents[1]
+
+LOCAL_RUN = """
+import json, sys
+from services import pipeline
+scene, out, options = sys.argv[1], sys.argv[2], json.loads(sys.argv[3])
+from pathlib import Path
+s = Path(scene)
+job = pipeline.Job.create(out, s / "images" / "aerial", s / "images" / "ground", s / "pos.csv",
+                          s / "cameras.json", options=options, settings={"torch_threads": 1})
+res = pipeline.run(job)
+print(json.dumps({k: v["summary"] for k, v in res.items()}, default=str))
+"""
+
+
+@pytest.fixture(scope="module")
+def service(service_settings, celery_worker):
+    from fastapi.testclient import TestClient
+
+    from api.bootstrap import create_tenant_with_key
+    from api.main import create_app
+    from shared.db import crud
+
+    app = create_app(service_settings)
+    with TestClient(app) as client:
+        with app.state.sessionmaker() as s:
+            key = create_tenant_with_key(s, f"e2e-{uuid.uuid4().hex[:8]}")
+            tenant_id = crud.get_api_key(s, key).tenant_id
+            s.commit()
+        tenant = types.SimpleNamespace(id=tenant_id, headers={"Authorization": f"Bearer {key}"})
+        yield types.SimpleNamespace(
+            app=app, client=client, tenant=tenant, worker=celery_worker, storage=app.state.storage
+        )
+
+
+# outputs that must be byte-identical to the local run's
+BYTE_EQUAL = (
+    "sfm/sparse/points3D.bin",
+    "sfm/sparse/images.bin",
+    "splat/point_cloud.ply",
+    "combined/sparse/points3D.bin",
+    "transfer/ground_poses.json",
+)
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _match_counts(path: Path) -> dict[str, int]:
+    """{'A|B': number of matches} of an HDF5 match file."""
+    from shared.matchfile import MatchFile
+
+    with MatchFile(path) as mf:
+        return {f"{pm.name0}|{pm.name1}": int(len(pm.matches)) for pm in mf.iter_pairs()}
+
+
+def _service_view_matches(service, job_id: str, folder: Path) -> dict[str, dict[str, int]]:
+    """Per-view match counts of the job's matches/VIEW.h5 objects (read behind the API, from storage)."""
+    from shared.storage.keys import job_prefix
+    from workers.jobsync import files_key
+
+    with service.app.state.sessionmaker() as s:
+        from shared.db.models import Job
+
+        row = s.get(Job, job_id)
+        prefix = job_prefix(row.project.tenant_id, row.project_id, row.id)
+    out = {}
+    for key in service.storage.list(files_key(prefix, "matches/")):
+        path = service.storage.download(key, folder / key.rsplit("/", 1)[-1])
+        out[path.stem] = _match_counts(path)
+    return out
+
+
+def _download(service, job_id: str, name: str, dest: Path) -> Path:
+    c, h = service.client, service.tenant.headers
+    arts = {a["name"]: a for a in c.get(f"/jobs/{job_id}/artifacts", headers=h).json()}
+    r = c.get(f"/artifacts/{arts[name]['id']}/download", headers=h)
+    assert r.status_code == 200, r.text
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    dest.write_bytes(r.content)
+    return dest
+
+
+@pytest.fixture(scope="module")
+def first_run(service, tiny_survey, tmp_path_factory):
+    """The job through the service and, at the same time, the same pipeline in one local process."""
+    folder = tmp_path_factory.mktemp("e2e")
+    local_root = folder / "local"
+    env = worker_environment(service.app.state.settings, folder / "unused")
+    t_local = time.monotonic()
+    local = subprocess.Popen(
+        [sys.executable, "-c", LOCAL_RUN, str(tiny_survey), str(local_root), json.dumps(OPTIONS)],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=open(folder / "local.log", "wb"),
+    )
+    try:
+        c, h = service.client, service.tenant.headers
+        t0 = time.monotonic()
+        pid = upload_survey(c, service.tenant, tiny_survey, service.storage)
+        t_upload = time.monotonic() - t0
+        r = c.post(f"/projects/{pid}/jobs", json={"options": OPTIONS}, headers=h)
+        assert r.status_code == 201, r.text
+        job_id = r.json()["id"]
+        seen: list = []
+        t0 = time.monotonic()
+        job = wait_for_job(c, h, job_id, JOB_TIMEOUT_S, seen)
+        t_service = time.monotonic() - t0
+        out, _ = local.communicate(timeout=JOB_TIMEOUT_S)
+        t_local = time.monotonic() - t_local
+    finally:
+        if local.poll() is None:
+            local.kill()
+    assert local.returncode == 0, (folder / "local.log").read_text()[-3000:]
+    print(
+        f"\nupload {t_upload:.1f} s, service job {t_service:.1f} s, local run {t_local:.1f} s (in parallel)"
+    )
+    return types.SimpleNamespace(
+        job_id=job_id,
+        job=job,
+        seen=seen,
+        local_root=local_root,
+        local_summaries=json.loads(out.decode().strip().splitlines()[-1]),
+        folder=folder,
+    )
+
+
+def test_job_succeeds_with_every_stage(service, first_run):
+    job = first_run.job
+    assert job["status"] == "succeeded", (job, service.worker.text()[-5000:])
+    assert [st["stage"] for st in job["stages"]] == list(STAGES)
+    assert all(st["status"] == "succeeded" for st in job["stages"]), job["stages"]
+    assert set(job["metrics"]) == set(STAGES) and set(job["timings"]) == set(STAGES)
+    assert job["progress"] == 1.0
+    stages_seen = [st for _, st, _ in first_run.seen if st]
+    assert stages_seen and stages_seen[-1] == "combined_sfm"
+    assert {"match_views", "train_splat"} <= set(stages_seen)
+    arts = {a["name"]: a["kind"] for a in service.client.get(
+        f"/jobs/{first_run.job_id}/artifacts", headers=service.tenant.headers).json()}  # fmt: skip
+    for name, kind in [
+        ("sfm/report.json", "report"),
+        ("splat/point_cloud.ply", "splat"),
+        ("transfer/matches.h5", "matches"),
+        ("transfer/ground_poses.json", "poses"),
+        ("combined/report.json", "report"),
+        ("combined/sparse/images.bin", "model"),
+    ]:
+        assert arts.get(name) == kind, (name, arts)
+
+
+def test_results_equal_the_local_run(service, first_run):
+    """Same registered images, same 3D points, same views, same matches per pair as the local run."""
+    job, local = first_run.job, first_run.local_summaries
+    print("service:", json.dumps(job["metrics"]))
+    print("local:  ", json.dumps(local))
+    folder = first_run.folder / "service"
+    lr = first_run.local_root
+
+    sfm = json.loads(_download(service, first_run.job_id, "sfm/report.json", folder / "sfm.json").read_text())
+    local_sfm = json.loads((lr / "sfm" / "report.json").read_text())
+    assert sfm["NRI"] == local_sfm["NRI"] and sfm["num_points3D"] == local_sfm["num_points3D"]
+
+    combined = json.loads(
+        _download(service, first_run.job_id, "combined/report.json", folder / "c.json").read_text()
+    )
+    local_combined = json.loads((lr / "combined" / "report.json").read_text())
+    assert combined["num_registered"] == local_combined["num_registered"]
+    assert combined["num_points3D"] == local_combined["num_points3D"]
+
+    assert job["metrics"]["plan_views"] == local["plan_views"]
+    assert job["metrics"]["train_splat"]["num_gaussians"] == local["train_splat"]["num_gaussians"]
+    assert job["metrics"]["reduce"] == local["reduce"]
+
+    views = _service_view_matches(service, first_run.job_id, folder / "matches")
+    local_views = {p.stem: _match_counts(p) for p in sorted((lr / "matches").glob("*.h5"))}
+    print("views:", views)
+    assert views == local_views and views and sum(sum(v.values()) for v in views.values()) > 0
+
+    # the models are the same bytes (artifacts carry their sha256)
+    arts = {a["name"]: a for a in service.client.get(
+        f"/jobs/{first_run.job_id}/artifacts", headers=service.tenant.headers).json()}  # fmt: skip
+    same = {name: arts[name]["sha256"] == _sha256(lr / name) for name in BYTE_EQUAL}
+    print("same bytes:", same)
+    assert all(same.values()), same
+
+    h5 = _download(service, first_run.job_id, "transfer/matches.h5", folder / "transfer.h5")
+    assert _match_counts(h5) == _match_counts(lr / "transfer" / "matches.h5")
+    pairs = service.client.get(f"/jobs/{first_run.job_id}/pairs", headers=service.tenant.headers).json()
+    assert pairs["artifact"] == "transfer/matches.h5"
+    assert pairs["total"] == len(_match_counts(h5))  # the reducer's pairs are all aerial-ground
+
+
+def _kill_match_view_midway(redis_client, job_id: str, job_dir: Path, timeout_s: float) -> dict | None:
+    """SIGKILL the pool process running a match_view task of the job while it writes its match file
+    (matches/VIEW.h5.tmp exists in the worker's job folder: past the sync, in the matching)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        running = []
+        for key in redis_client.scan_iter("midview:task:*:alive", count=500):
+            raw = redis_client.get(key)
+            info = json.loads(raw) if raw else {}
+            if info.get("job") == job_id and info.get("task") == "midview.match_view":
+                info["task_id"] = key.decode().split(":")[2]
+                running.append(info)
+        while running and time.monotonic() < deadline:
+            writing = {p.name[: -len(".h5.tmp")] for p in (job_dir / "matches").glob("*.h5.tmp")}
+            hit = [i for i in running if i["args"][1] in writing]
+            if hit:
+                os.kill(int(hit[0]["pid"]), signal.SIGKILL)
+                hit[0]["killed_after_s"] = time.time() - hit[0]["started"]
+                return hit[0]
+            if not any(redis_client.exists(f"midview:task:{i['task_id']}:alive") for i in running):
+                break  # finished before we saw it matching: wait for the next one
+            time.sleep(0.003)
+        time.sleep(0.01)
+    return None
+
+
+def test_killed_worker_process_mid_matching(service, first_run):
+    """Rerun from match_views (its outputs deleted, so that every view is matched again) and SIGKILL the
+    pool process during a match_view task: the message is requeued (acks_late + reject_on_worker_lost),
+    matched again by a new pool process, and the job ends with the same results as before."""
+    import redis
+
+    from shared.db.models import Job
+    from shared.storage.keys import job_prefix
+    from workers.jobsync import files_key
+
+    assert first_run.job["status"] == "succeeded"
+    c, h, job_id = service.client, service.tenant.headers, first_run.job_id
+    with service.app.state.sessionmaker() as s:
+        row = s.get(Job, job_id)
+        prefix = job_prefix(row.project.tenant_id, row.project_id, row.id)
+    for key in [
+        *service.storage.list(files_key(prefix, "matches/")),
+        files_key(prefix, "stages/match_views.json"),
+    ]:
+        service.storage.delete(key)
+
+    rd = redis.Redis.from_url(service.app.state.settings.broker_url)
+    t0 = time.monotonic()
+    r = c.post(f"/jobs/{job_id}/rerun", json={"from_stage": "match_views"}, headers=h)
+    assert r.status_code == 200, r.text
+    killed = _kill_match_view_midway(rd, job_id, service.worker.work_dir / job_id, 120)
+    assert killed is not None, service.worker.text()[-5000:]
+    print(f"\nkilled pool process {killed['pid']} {killed['killed_after_s']:.1f} s into {killed['args']}")
+    job = wait_for_job(c, h, job_id, JOB_TIMEOUT_S)
+    print(f"\nrerun from match_views with a killed pool process: {time.monotonic() - t0:.1f} s")
+    log = service.worker.text()
+    assert job["status"] == "succeeded", (job, log[-5000:])
+    assert job["attempt"] == 2
+    # the process died with the task unfinished; its message came back and succeeded in another process
+    lost = log.find(f"pid:{killed['pid']} exited with 'signal 9 (SIGKILL)'")
+    done = log.find(f"Task midview.match_view[{killed['task_id']}] succeeded")
+    assert 0 <= lost < done, log[-5000:]
+    assert [st["stage"] for st in job["stages"] if st["status"] == "succeeded"][-3:] == [
+        "match_views", "reduce", "combined_sfm"]  # fmt: skip
+    assert all(
+        job["metrics"][s] == first_run.job["metrics"][s] for s in ("match_views", "reduce", "combined_sfm")
+    )
+
+    folder = first_run.folder / "rerun"
+    views = _service_view_matches(service, job_id, folder / "matches")
+    local_views = {p.stem: _match_counts(p) for p in sorted((first_run.local_root / "matches").glob("*.h5"))}
+    assert views == local_views
+    h5 = _download(service, job_id, "transfer/matches.h5", folder / "transfer.h5")
+    assert _match_counts(h5) == _match_counts(first_run.local_root / "transfer" / "matches.h5")
+
+
+def test_rerun_on_an_empty_worker_folder_skips_every_stage(service, first_run):
+    """As if another worker took the job: its local job folder is deleted, a rerun of the whole job pulls
+    everything from storage (with the files' modification times), and every stage is up to date."""
+    import shutil
+
+    c, h, job_id = service.client, service.tenant.headers, first_run.job_id
+    before = c.get(f"/jobs/{job_id}", headers=h).json()
+    assert before["status"] == "succeeded"
+    shutil.rmtree(service.worker.work_dir / job_id)
+    t0 = time.monotonic()
+    r = c.post(f"/jobs/{job_id}/rerun", headers=h)
+    assert r.status_code == 200, r.text
+    job = wait_for_job(c, h, job_id, JOB_TIMEOUT_S)
+    print(f"\nrerun with every stage up to date, from an empty job folder: {time.monotonic() - t0:.1f} s")
+    assert job["status"] == "succeeded", (job, service.worker.text()[-5000:])
+    runs = [(st["stage"], st["status"]) for st in job["stages"]][-len(STAGES) :]
+    assert runs == [(s, "skipped") for s in STAGES], runs
+    assert job["metrics"] == before["metrics"]

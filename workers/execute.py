@@ -1,0 +1,607 @@
+"""The one code path that runs pipeline work for the service: Celery tasks (workers/tasks.py) and the
+embedded dispatcher (workers/embedded.py) both call these functions.
+
+Each unit of work opens short database sessions to report (stage runs, progress, artifacts, status),
+brings the job folder on this machine up to date with storage (jobsync.materialize + pull), runs
+services.pipeline, and pushes what it produced:
+
+- execute_stage(job_id, stage): one pipeline stage;
+- prepare_match_views(job_id): the start of the match_views fan-out (feature cache of the candidate
+  images, once), returns the view names;
+- execute_match_view(job_id, view): one view of the fan-out (matches/VIEW.h5);
+- execute_stage(job_id, "match_views") after the fan-out: checks every view is matched (those already
+  matched are skipped), prunes matches of views no longer planned, writes the stage marker;
+- finalize(job_id): the job succeeded (metrics from the stage markers) + webhook event;
+- fail(job_id, stage, error): the stage run and the job failed + webhook event.
+
+A job that was cancelled (or finished) meanwhile raises JobStopped: at the start of every unit and at
+every progress report (crud.update_job_progress refuses to update a finished job).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import random
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import sqlalchemy as sa
+
+from shared.db import crud
+from shared.db.models import TERMINAL_JOB_STATUSES, JobStatus, StageRun, StageStatus
+from shared.db.session import get_engine, session_scope
+from shared.job_options import STAGES, JobOptions
+from shared.storage import Storage, StorageKeyError, get_storage
+from workers import jobsync
+
+log = logging.getLogger("midview.workers")
+
+MAX_ERROR_CHARS = 4000
+
+# folders (relative to the job folder) a stage owns: pushed after it, and mirrored (objects of files
+# that no longer exist locally are deleted, e.g. the matches of views no longer planned)
+STAGE_DIRS: dict[str, list[str]] = {
+    "aerial_sfm": ["sfm"],
+    "train_splat": ["splat"],
+    "plan_views": ["plan"],
+    "render_views": ["views"],
+    "match_views": ["matches", "features"],
+    "reduce": ["transfer"],
+    "combined_sfm": ["combined"],
+}
+# files a stage writes outside its folder (pushed, never mirrored)
+STAGE_EXTRA: dict[str, list[str]] = {
+    "aerial_sfm": ["cameras.json"],
+    "combined_sfm": ["features"],  # the combined SfM extends the matching feature cache
+}
+# user-facing outputs recorded as artifacts: (path or folder/* relative to the job folder, kind)
+ARTIFACTS: dict[str, list[tuple[str, str]]] = {
+    "aerial_sfm": [
+        ("sfm/report.json", "report"),
+        ("sfm/georef.json", "georef"),
+        ("sfm/cameras.geojson", "geojson"),
+        ("sfm/sparse/*", "model"),
+        ("cameras.json", "cameras"),
+    ],
+    "train_splat": [("splat/point_cloud.ply", "splat"), ("splat/metrics.json", "metrics")],
+    "plan_views": [("plan/views.json", "views")],
+    "render_views": [("views/views.json", "views")],
+    "match_views": [],
+    "reduce": [
+        ("transfer/matches.h5", "matches"),  # the API's /jobs/{id}/pairs reads the newest "matches"
+        ("transfer/ground_poses.json", "poses"),
+        ("transfer/report.json", "report"),
+        ("transfer/database.db", "colmap_database"),
+    ],
+    "combined_sfm": [("combined/report.json", "report"), ("combined/sparse/*", "model")],
+}
+
+
+class JobStopped(Exception):
+    """The job was cancelled, finished or deleted meanwhile: stop without recording a failure."""
+
+
+# -- errors worth a retry ------------------------------------------------------------------------
+_PERMANENT_OS_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)
+
+
+def _transient_types() -> tuple[type[BaseException], ...]:
+    types: list[type[BaseException]] = []
+    try:
+        import sqlalchemy.exc as sx
+
+        types += [sx.OperationalError, sx.DisconnectionError, sx.TimeoutError]
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        import botocore.exceptions as bx
+
+        types += [bx.ConnectionError, bx.HTTPClientError]  # endpoint unreachable, read timeouts, ...
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        import redis.exceptions as rx
+
+        types += [rx.ConnectionError, rx.TimeoutError, rx.BusyLoadingError]
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        import kombu.exceptions as kx
+
+        types += [kx.OperationalError]
+    except ImportError:  # pragma: no cover
+        pass
+    return tuple(types)
+
+
+_TRANSIENT = _transient_types()
+_TRANSIENT_S3_CODES = {"SlowDown", "RequestTimeout", "InternalError", "ServiceUnavailable", "Throttling"}
+
+
+def is_transient(exc: BaseException) -> bool:
+    """Whether exc (or what caused it) is a connection or availability problem that a retry may fix:
+    OSError other than a missing/forbidden file, database/S3/Redis/broker connection errors, S3 5xx."""
+    seen = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, JobStopped):
+            return False
+        if isinstance(e, OSError) and not isinstance(e, _PERMANENT_OS_ERRORS):
+            return True
+        if _TRANSIENT and isinstance(e, _TRANSIENT):
+            return True
+        resp = getattr(e, "response", None)
+        if isinstance(resp, dict):  # botocore ClientError
+            err, meta = resp.get("Error", {}), resp.get("ResponseMetadata", {})
+            if err.get("Code") in _TRANSIENT_S3_CODES or int(meta.get("HTTPStatusCode") or 0) >= 500:
+                return True
+        e = e.__cause__ or e.__context__
+    return False
+
+
+BACKOFF_BASE_S = 2.0
+BACKOFF_MAX_S = 300.0
+
+
+def backoff_s(retries: int) -> float:
+    """Delay before retry number retries + 1: exponential, capped, with jitter (x0.5 to x1.5)."""
+    return min(BACKOFF_MAX_S, BACKOFF_BASE_S * 2**retries) * random.uniform(0.5, 1.5)
+
+
+def error_text(stage: str | None, exc: BaseException) -> str:
+    text = f"{type(exc).__name__}: {exc}"
+    if stage:
+        text = f"stage {stage}: {text}"
+    return text[:MAX_ERROR_CHARS]
+
+
+# -- context -------------------------------------------------------------------------------------
+@dataclass
+class Context:
+    settings: Any
+    engine: sa.Engine
+    storage: Storage
+    work_dir: Path
+
+    @contextmanager
+    def session(self) -> Iterator[Any]:
+        with session_scope(self.engine) as s:
+            yield s
+
+
+_storages: dict[tuple, Storage] = {}
+_lock = threading.Lock()
+
+
+def get_context(settings: Any) -> Context:
+    """Engine (process-wide per URL), storage (cached per configuration) and work folder."""
+    key = (
+        settings.storage,
+        str(settings.storage_root),
+        settings.s3_endpoint_url,
+        settings.s3_bucket,
+        settings.s3_access_key,
+        os.getpid(),  # boto3 clients must not cross a fork
+    )
+    with _lock:
+        storage = _storages.get(key)
+        if storage is None:
+            storage = _storages[key] = get_storage(settings)
+    work_dir = Path(settings.work_dir or Path(settings.data_dir) / "work")
+    return Context(settings, get_engine(settings.database_url), storage, work_dir)
+
+
+def worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+@dataclass
+class JobInfo:
+    """What a unit needs of the job row after its session is closed."""
+
+    id: str
+    prefix: str  # the job's storage prefix (tenants/T/projects/P/jobs/J/)
+    stages: list[str]
+    run_id: str | None = None
+
+
+def _info(row: Any) -> JobInfo:
+    options = JobOptions.model_validate(row.options or {})
+    return JobInfo(row.id, jobsync.job_storage_prefix(row), list(options.stages))
+
+
+def _live_row(session: Any, job_id: str) -> Any:
+    row = crud.get_job(session, job_id)
+    if row is None:
+        raise JobStopped(f"job {job_id} no longer exists")
+    if row.status in TERMINAL_JOB_STATUSES:
+        raise JobStopped(f"job {job_id} is {row.status.value}")
+    return row
+
+
+def _open_run(session: Any, row: Any, stage: str, worker: str | None) -> StageRun:
+    """The stage run of this attempt: the running one started by the match_views fan-out (or by a
+    worker that was lost) is reused; runs of earlier attempts left running are closed."""
+    open_runs = list(
+        session.scalars(
+            sa.select(StageRun)
+            .where(StageRun.job_id == row.id, StageRun.stage == stage, StageRun.status == StageStatus.running)
+            .order_by(StageRun.started_at.desc())
+        )
+    )
+    current = None
+    for run in open_runs:
+        if current is None and row.started_at is not None and run.started_at >= row.started_at:
+            current = run
+        else:
+            crud.finish_stage(session, run, StageStatus.failed, error="abandoned (its worker was lost)")
+    if current is not None:
+        current.worker = worker or current.worker
+        crud.update_job_progress(session, row, row.progress, stage)
+        return current
+    return crud.start_stage(session, row, stage, worker=worker)
+
+
+def _begin(ctx: Context, job_id: str, stage: str, worker: str | None, open_run: bool = True) -> JobInfo:
+    with ctx.session() as s:
+        row = _live_row(s, job_id)
+        info = _info(row)
+        if open_run:
+            info.run_id = _open_run(s, row, stage, worker or worker_name()).id
+    return info
+
+
+def _close_run(ctx: Context, run_id: str | None, status: StageStatus, error: str | None = None) -> None:
+    """Close a stage run (best effort: the database may be what failed)."""
+    if run_id is None:
+        return
+    try:
+        with ctx.session() as s:
+            run = s.get(StageRun, run_id)
+            if run is not None and run.status == StageStatus.running:
+                crud.finish_stage(s, run, status, error=error)
+    except Exception:
+        log.exception("could not close stage run %s", run_id)
+
+
+# -- progress ------------------------------------------------------------------------------------
+class ProgressReporter:
+    """progress(stage, fraction, message) of services.pipeline -> crud.update_job_progress, with the
+    job's overall progress = (index of stage + fraction) / number of stages; at most one write per
+    min_interval_s (besides a stage's first and last report). JobStopped when the job was cancelled."""
+
+    def __init__(self, ctx: Context, info: JobInfo, min_interval_s: float = 1.0):
+        self.ctx, self.info, self.min_interval_s = ctx, info, min_interval_s
+        self._last = -math.inf
+        self._last_stage: str | None = None
+
+    def overall(self, stage: str, fraction: float) -> float:
+        stages = self.info.stages
+        i = stages.index(stage) if stage in stages else 0
+        return min(1.0, max(0.0, (i + min(max(fraction, 0.0), 1.0)) / max(len(stages), 1)))
+
+    def __call__(self, stage: str, fraction: float, message: str = "") -> None:
+        now = time.monotonic()
+        first = stage != self._last_stage
+        if not first and fraction < 1.0 and now - self._last < self.min_interval_s:
+            return
+        self._last, self._last_stage = now, stage
+        log.info("job %s: %s %3.0f%% %s", self.info.id, stage, 100 * fraction, message)
+        try:
+            with self.ctx.session() as s:
+                crud.update_job_progress(s, self.info.id, self.overall(stage, fraction), stage)
+        except crud.InvalidTransitionError as e:
+            raise JobStopped(str(e)) from None
+        except crud.NotFoundError as e:
+            raise JobStopped(str(e)) from None
+
+
+# -- job folder ----------------------------------------------------------------------------------
+def _materialize(ctx: Context, info: JobInfo) -> Any:
+    """materialize + pull under the job folder's lock; returns the services.pipeline.Job."""
+    root = jobsync.job_root(ctx.work_dir, info.id)
+    with jobsync.locked(root):
+        with ctx.session() as s:
+            row = crud.get_job(s, info.id)
+            if row is None:
+                raise JobStopped(f"job {info.id} no longer exists")
+            settings = jobsync.pipeline_settings(ctx.settings)
+            job = jobsync.materialize(s, ctx.storage, row, ctx.work_dir, settings)
+        stats = jobsync.pull(ctx.storage, info.prefix, root)
+    if stats.transferred or stats.deleted:
+        log.info("job %s: pulled %s", info.id, stats)
+    return job
+
+
+def _push(ctx: Context, info: JobInfo, job: Any, paths: list, unit: str, mirror: list | None = None) -> None:
+    with jobsync.locked(job.root):
+        stats = jobsync.push(ctx.storage, info.prefix, job.root, paths, unit, mirror or [])
+    log.info("job %s: pushed %s: %s", info.id, unit, stats)
+
+
+def _push_stage(ctx: Context, info: JobInfo, job: Any, stage: str) -> None:
+    from services import pipeline
+
+    owned = STAGE_DIRS.get(stage, [])
+    paths = [*owned, *STAGE_EXTRA.get(stage, []), *pipeline.REGISTRY[stage].outputs(job)]
+    paths.append(pipeline.marker_path(job, stage))
+    mirror = [d for d in owned if (job.root / d).is_dir()]
+    _push(ctx, info, job, paths, stage, mirror)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _record_artifacts(session: Any, info: JobInfo, job: Any, stage: str) -> int:
+    n = 0
+    for pattern, kind in ARTIFACTS.get(stage, []):
+        if pattern.endswith("/*"):
+            folder = job.root / pattern[:-2]
+            files = sorted(p for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
+        else:
+            files = [job.root / pattern] if (job.root / pattern).is_file() else []
+        for p in files:
+            rel = p.relative_to(job.root).as_posix()
+            crud.record_artifact(
+                session,
+                info.id,
+                kind,
+                rel,
+                jobsync.files_key(info.prefix, rel),
+                size_bytes=p.stat().st_size,
+                sha256=_sha256(p),
+                content_type=jobsync.content_type(p),
+            )
+            n += 1
+    return n
+
+
+# -- units ---------------------------------------------------------------------------------------
+def execute_stage(job_id: str, stage: str, *, settings: Any, worker: str | None = None) -> dict:
+    """Run one stage of a job (skipped when up to date); returns {stage, skipped, seconds, summary}."""
+    from services import pipeline
+
+    if stage not in STAGES:
+        raise ValueError(f"unknown stage {stage!r}; stages are {list(STAGES)}")
+    ctx = get_context(settings)
+    info = _begin(ctx, job_id, stage, worker)
+    try:
+        job = _materialize(ctx, info)
+        report = ProgressReporter(ctx, info)
+        if stage == "match_views":
+            marker = _complete_match_views(job, report)
+        else:
+            marker = pipeline.run_stage(job, stage, progress=report)
+        _push_stage(ctx, info, job, stage)
+        with ctx.session() as s:
+            _live_row(s, job_id)
+            n = _record_artifacts(s, info, job, stage)
+            run = s.get(StageRun, info.run_id)
+            status = StageStatus.skipped if marker.get("skipped") else StageStatus.succeeded
+            output_key = jobsync.files_key(info.prefix, f"{stage_dir(stage)}/")
+            crud.finish_stage(s, run, status, output_key=output_key)
+        log.info(
+            "job %s: stage %s %s in %.1f s (%d artifacts): %s",
+            job_id, stage, status.value, float(marker.get("seconds") or 0), n, marker.get("summary"),
+        )  # fmt: skip
+        return {
+            "stage": stage,
+            "skipped": bool(marker.get("skipped")),
+            "seconds": marker.get("seconds"),
+            "summary": _json_safe(marker.get("summary")),
+        }
+    except JobStopped:
+        _close_run(ctx, info.run_id, StageStatus.cancelled)
+        raise
+    except BaseException as e:
+        _close_run(ctx, info.run_id, StageStatus.failed, error_text(None, e))
+        raise
+
+
+def stage_dir(stage: str) -> str:
+    return STAGE_DIRS.get(stage, [stage])[0]
+
+
+def prepare_match_views(job_id: str, *, settings: Any, worker: str | None = None) -> list[str]:
+    """Start of the match_views fan-out: open its stage run, extract the features of the candidate aerial
+    and ground images once (pushed, so that every view task reuses them), return the view names (none
+    when the stage is up to date)."""
+    from services import pipeline
+
+    ctx = get_context(settings)
+    info = _begin(ctx, job_id, "match_views", worker)
+    try:
+        job = _materialize(ctx, info)
+        report = ProgressReporter(ctx, info)
+        if pipeline.is_done(job, "match_views"):  # nothing to fan out: the stage task will skip it
+            report("match_views", 0.0, "up to date")
+            return []
+        names = pipeline.view_names(job)
+        report("match_views", 0.0, f"extracting features for {len(names)} views")
+        pipeline.prepare_match_views(job)
+        _push(ctx, info, job, [job.features_path], "match_views.features")
+        return names
+    except JobStopped:
+        _close_run(ctx, info.run_id, StageStatus.cancelled)
+        raise
+    except BaseException as e:
+        _close_run(ctx, info.run_id, StageStatus.failed, error_text(None, e))
+        raise
+
+
+def execute_match_view(job_id: str, view: str, *, settings: Any, worker: str | None = None) -> dict:
+    """One unit of the match_views fan-out: match view `view` (skipped when its match file is up to date)
+    and push matches/VIEW.h5."""
+    from services import pipeline
+
+    ctx = get_context(settings)
+    info = _begin(ctx, job_id, "match_views", worker, open_run=False)
+    job = _materialize(ctx, info)
+    if not job.features_path.is_file():  # the fan-out's preparation is missing: do it here
+        pipeline.prepare_match_views(job)
+    t0 = time.perf_counter()
+    path = pipeline.match_view_unit(job, view)
+    seconds = time.perf_counter() - t0
+    _push(ctx, info, job, [path], f"match_views.view.{view}")
+    names = pipeline.view_names(job)
+    done = {k.rsplit("/", 1)[-1][:-3] for k in ctx.storage.list(jobsync.files_key(info.prefix, "matches/"))}
+    ProgressReporter(ctx, info)(
+        "match_views", min(len(done & set(names)), len(names)) / max(len(names), 1), f"matched view {view}"
+    )
+    return {"view": view, "file": path.relative_to(job.root).as_posix(), "seconds": round(seconds, 2)}
+
+
+def _complete_match_views(job: Any, report: ProgressReporter) -> dict:
+    """The match_views stage after its fan-out: every view matched (up-to-date views are skipped),
+    matches of views no longer planned removed, the marker written as services.pipeline.run_stage does.
+
+    services.pipeline.run_stage(job, "match_views") is not called here: its prepare_match_views opens
+    the feature cache for writing, which changes the file's modification time, so that every view's
+    match file (whose fingerprint includes it) would be considered stale and matched again. Without a
+    prepared feature cache (no fan-out ran), it falls back to run_stage."""
+    from services import pipeline
+
+    stage = "match_views"
+    if pipeline.is_done(job, stage) or not job.features_path.is_file():
+        return pipeline.run_stage(job, stage, progress=report)
+    sd = pipeline.REGISTRY[stage]
+    report(stage, 0.0, "started")
+    t0 = time.perf_counter()
+    names = pipeline.view_names(job)
+    for i, n in enumerate(names):
+        pipeline.match_view_unit(job, n)
+        report(stage, (i + 1) / max(len(names), 1), f"view {n}")
+    keep = {f"{n}.h5" for n in names}
+    for p in job.dir("matches").glob("*"):
+        if p.is_file() and p.name not in keep:
+            p.unlink()
+    job.dir("matches").mkdir(parents=True, exist_ok=True)
+    missing = [str(p) for p in sd.outputs(job) if not Path(p).exists()]
+    if missing:
+        raise RuntimeError(f"stage {stage} finished without its outputs: {missing}")
+    marker = {
+        "stage": stage,
+        "fingerprint": pipeline.fingerprint(sd.conf(job), sd.inputs(job), job.root),
+        "outputs": [str(p) for p in sd.outputs(job)],
+        "seconds": round(time.perf_counter() - t0, 2),
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "summary": {"num_views": len(names)},
+    }
+    job.stages_dir.mkdir(parents=True, exist_ok=True)
+    path = pipeline.marker_path(job, stage)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(marker, indent=1, default=str))
+    tmp.replace(path)
+    report(stage, 1.0, "finished")
+    return {**marker, "skipped": False}
+
+
+def _json_safe(value: Any) -> Any:
+    """NaN/inf -> None (PostgreSQL JSONB refuses them), recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def finalize(job_id: str, *, settings: Any) -> dict:
+    """The job succeeded: metrics = every stage's marker summary (read from storage); webhook event.
+    Idempotent (a job already succeeded is left as it is)."""
+    from api.webhooks import enqueue_job_event
+
+    ctx = get_context(settings)
+    with ctx.session() as s:
+        row = crud.get_job(s, job_id)
+        if row is not None and row.status == JobStatus.succeeded:
+            return dict(row.metrics or {})
+        info = _info(_live_row(s, job_id))
+    metrics: dict[str, Any] = {}
+    for stage in info.stages:
+        try:
+            marker = json.loads(ctx.storage.get_bytes(jobsync.files_key(info.prefix, f"stages/{stage}.json")))
+        except StorageKeyError:
+            raise RuntimeError(f"stage {stage} has no marker in storage: it did not finish") from None
+        metrics[stage] = _json_safe(marker.get("summary") or {})
+    with ctx.session() as s:
+        row = _live_row(s, job_id)
+        crud.update_job_results(s, row, metrics=metrics)
+        crud.set_job_status(s, row, JobStatus.succeeded)
+        enqueue_job_event(s, row)
+    log.info("job %s succeeded: %s", job_id, metrics)
+    return metrics
+
+
+def fail(job_id: str, stage: str | None, error: BaseException | str, *, settings: Any) -> None:
+    """The job failed: its running stage runs and the job get the error text; webhook event. A job that
+    has finished already (e.g. cancelled) is left as it is."""
+    from api.webhooks import enqueue_job_event
+
+    text = error if isinstance(error, str) else error_text(stage, error)
+    ctx = get_context(settings)
+    with ctx.session() as s:
+        row = crud.get_job(s, job_id)
+        if row is None:
+            return
+        _close_running(s, job_id, StageStatus.failed, text)
+        if row.status in TERMINAL_JOB_STATUSES:
+            return
+        crud.set_job_status(s, row, JobStatus.failed, error=text)
+        enqueue_job_event(s, row)
+    log.error("job %s failed: %s", job_id, text)
+
+
+def _close_running(session: Any, job_id: str, status: StageStatus, error: str | None) -> int:
+    runs = list(
+        session.scalars(
+            sa.select(StageRun).where(StageRun.job_id == job_id, StageRun.status == StageStatus.running)
+        )
+    )
+    for run in runs:
+        crud.finish_stage(session, run, status, error=error)
+    return len(runs)
+
+
+def close_running_stages(job_id: str, *, settings: Any, status: StageStatus = StageStatus.cancelled) -> int:
+    """Close the job's running stage runs (after its tasks were terminated on cancel)."""
+    with get_context(settings).session() as s:
+        return _close_running(s, job_id, status, None)
+
+
+def job_stage_list(job_id: str, *, settings: Any, from_stage: str | None = None) -> list[str]:
+    """The job's stages from from_stage on (JobStopped when it no longer runs)."""
+    ctx = get_context(settings)
+    with ctx.session() as s:
+        row = crud.get_job(s, job_id)
+        if row is None:
+            raise JobStopped(f"job {job_id} no longer exists")
+        return JobOptions.model_validate(row.options or {}).stages_from(from_stage)
+
+
+__all__ = [
+    "JobStopped",
+    "execute_match_view",
+    "execute_stage",
+    "fail",
+    "finalize",
+    "is_transient",
+    "prepare_match_views",
+]

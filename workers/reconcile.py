@@ -1,0 +1,170 @@
+"""The reconciler: compares the jobs the database says are queued or running with what is being worked
+on, and dispatches again the jobs that stalled (a lost message, a worker that died for good, an API
+that crashed between committing a job and queueing it).
+
+A job is stalled when its last sign of life in the database (created, started, a stage run started or
+finished) is older than stall_timeout_s AND nothing works on it: `is_live(job_id)` is false. In the
+Celery deployment RedisLiveness answers that: a task of the job runs (its heartbeat key exists), or a
+message of the job waits in a queue or is reserved by a worker. Stages are idempotent (a stage whose
+outputs are up to date is skipped), so dispatching a job twice costs time, never correctness.
+
+- running -> submit(job_id, from_stage=job.current_stage);
+- queued  -> submit(job_id) (without a liveness probe: only when no root task id was recorded).
+
+`reconcile` returns the actions it took (and logs them), so that it can be tested on database rows with
+a recording dispatcher.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections.abc import Callable, Container
+from dataclasses import asdict, dataclass
+from datetime import datetime, timedelta
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy.orm import Session
+
+from shared.db import crud
+from shared.db.models import Job, JobStatus, StageRun, utcnow
+from shared.job_options import JobOptions
+
+log = logging.getLogger("midview.workers.reconcile")
+
+_UUID = re.compile(rb"[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}")
+
+
+@dataclass
+class Action:
+    job_id: str
+    status: str  # the job's status when it was found stalled
+    from_stage: str | None
+    reason: str
+    task_id: str | None = None
+    error: str | None = None  # the dispatch failed (tried again at the next pass)
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def last_activity(session: Session, job: Job) -> datetime:
+    """The job's last sign of life in the database: created, started, a stage run started or finished."""
+    row = session.execute(
+        sa.select(sa.func.max(StageRun.started_at), sa.func.max(StageRun.finished_at)).where(
+            StageRun.job_id == job.id
+        )
+    ).one()
+    stamps = [job.created_at, job.started_at, *row]
+    return max(_aware(t) for t in stamps if t is not None)
+
+
+def _aware(t: datetime) -> datetime:
+    from datetime import UTC
+
+    return t.replace(tzinfo=UTC) if t.tzinfo is None else t
+
+
+LiveProbe = Callable[[str], bool] | Container[str] | None
+
+
+def _probe(is_live: LiveProbe) -> Callable[[str], bool | None]:
+    if is_live is None:
+        return lambda job_id: None
+    if callable(is_live):
+        return lambda job_id: bool(is_live(job_id))
+    return lambda job_id: job_id in is_live
+
+
+def reconcile(
+    session: Session,
+    dispatcher: Any,
+    now: datetime | None = None,
+    stall_timeout_s: float = 900.0,
+    *,
+    is_live: LiveProbe = None,
+    limit: int = 100,
+) -> list[Action]:
+    """Dispatch again the queued and running jobs that stalled (see the module); returns the actions.
+    The caller commits (new root task ids are written to the job rows)."""
+    now = now or utcnow()
+    cutoff = now - timedelta(seconds=float(stall_timeout_s))
+    live = _probe(is_live)
+    stmt = (
+        sa.select(Job)
+        .where(Job.status.in_([JobStatus.queued, JobStatus.running]))
+        .order_by(Job.created_at)
+        .limit(limit)
+        .with_for_update(skip_locked=True, of=Job)  # two reconcilers never take the same job
+    )
+    actions: list[Action] = []
+    for job in session.scalars(stmt):
+        last = last_activity(session, job)
+        if last > cutoff:
+            continue
+        alive = live(job.id)
+        if alive:
+            continue
+        idle = (now - last).total_seconds()
+        if job.status == JobStatus.queued:
+            if alive is None and job.celery_root_id:
+                continue  # its first task may still wait in a queue: without a probe we cannot tell
+            from_stage, reason = None, f"queued for {idle:.0f} s and not in any queue"
+        else:
+            stages = JobOptions.model_validate(job.options or {}).stages
+            from_stage = job.current_stage if job.current_stage in stages else None
+            reason = f"running, no sign of life for {idle:.0f} s and no live task"
+        action = Action(job.id, job.status.value, from_stage, reason)
+        try:
+            task_id = dispatcher.submit(job.id, from_stage)
+            if isinstance(task_id, str) and task_id:
+                action.task_id = task_id
+                crud.update_job_results(session, job, celery_root_id=task_id)
+            log.warning("job %s %s: dispatched again from %s", job.id, reason, from_stage or "the start")
+        except Exception as e:
+            action.error = f"{type(e).__name__}: {e}"
+            log.exception("job %s %s: dispatching it again failed", job.id, reason)
+        actions.append(action)
+    session.flush()
+    return actions
+
+
+class RedisLiveness:
+    """Which jobs Celery is working on, from Redis: a task of the job running (heartbeat key, see
+    workers/tasks.py), or a message naming the job waiting in a queue or reserved by a worker (the Redis
+    transport's `unacked` hash). `snapshot()` reads it all once: a set of job ids."""
+
+    def __init__(self, redis: Any, queues: tuple[str, ...] | None = None, priority_steps: int = 10):
+        from workers.celery_app import ALIVE_PATTERN, QUEUES
+
+        self.redis = redis
+        self.queues = queues or QUEUES
+        self.priority_steps = priority_steps
+        self.alive_pattern = ALIVE_PATTERN
+
+    def _queue_keys(self) -> list[str]:
+        sep = "\x06\x16"  # kombu's priority queue suffix
+        return [q for name in self.queues for q in (name, *(f"{name}{sep}{p}" for p in range(1, 10)))]
+
+    def snapshot(self) -> set[str]:
+        import json
+
+        live: set[str] = set()
+        for key in self.redis.scan_iter(match=self.alive_pattern, count=500):
+            raw = self.redis.get(key)
+            if raw:
+                try:
+                    live.add(str(json.loads(raw)["job"]))
+                except (ValueError, KeyError, TypeError):
+                    continue
+        blobs: list[bytes] = []
+        for q in self._queue_keys():
+            blobs += self.redis.lrange(q, 0, -1)
+        blobs += self.redis.hvals("unacked")
+        for blob in blobs:
+            live.update(m.decode() for m in _UUID.findall(blob))  # task ids too: harmless
+        return live
+
+    def __call__(self, job_id: str) -> bool:
+        return job_id in self.snapshot()

@@ -1,0 +1,245 @@
+"""Celery tasks: thin wrappers over workers.execute with the service's error policy.
+
+- run_stage(job_id, stage): one pipeline stage (queue: STAGE_QUEUES[stage]);
+- fan_out_views(job_id, after): prepares match_views, then replaces itself by
+  chord([match_view(job_id, v) for each rendered view], chain(run_stage(match_views), *after, finalize));
+- match_view(job_id, view): one rendered view (queue cpu);
+- finalize(job_id): the job succeeded;
+- reconcile(), deliver_webhooks(): periodic (celery beat).
+
+Errors: a transient error (connections of the database, storage, Redis; see execute.is_transient) is
+retried with exponential back-off and jitter, at most settings.task_max_retries times; any other error
+marks the stage and the job failed (execute.fail) and is re-raised, which stops the chain. A job that was
+cancelled or finished meanwhile (execute.JobStopped) ends the task with celery's Ignore: no callback
+runs, nothing is recorded as failed.
+
+While a task of a job runs, its id is in the Redis set `midview:job:{job}:tasks` (the dispatcher revokes
+them on cancel) and `midview:task:{id}:alive` holds {job, task, args, pid, hostname}, refreshed every
+HEARTBEAT_S with a TTL of ALIVE_TTL_S: the reconciler's proof that the job is being worked on.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from celery import chain, chord
+from celery.exceptions import Ignore, Reject, Retry
+
+from shared.config import get_settings
+from shared.job_options import STAGE_QUEUES
+from workers import execute
+from workers.celery_app import (
+    ALIVE_PATTERN,
+    DELIVER_WEBHOOKS,
+    FAN_OUT_VIEWS,
+    FINALIZE,
+    MATCH_VIEW,
+    RECONCILE,
+    RUN_STAGE,
+    TASK_QUEUES,
+    TASKS_TTL_S,
+    alive_key,
+    app,
+    redis_url,
+    tasks_key,
+)
+
+log = logging.getLogger("midview.workers.tasks")
+
+HEARTBEAT_S = 20.0
+ALIVE_TTL_S = 90
+
+__all__ = ["ALIVE_PATTERN", "alive_key", "tasks_key"]
+
+# -- Redis ---------------------------------------------------------------------------------------
+_redis: Any = None
+_redis_pid: int | None = None
+
+
+def redis_client() -> Any:
+    """This process's Redis client (None when no Redis is configured)."""
+    global _redis, _redis_pid
+    if _redis is None or _redis_pid != os.getpid():
+        import redis
+
+        url = redis_url(get_settings())
+        _redis = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5) if url else None
+        _redis_pid = os.getpid()
+    return _redis
+
+
+def reset_clients() -> None:
+    """Forget clients created before a fork."""
+    global _redis, _redis_pid
+    _redis, _redis_pid = None, None
+
+
+@contextmanager
+def tracked(task: Any, job_id: str) -> Iterator[None]:
+    """Register the running task in Redis (task set of the job, heartbeat key) for its duration; Redis
+    trouble here is logged, never fatal."""
+    import redis
+
+    r = redis_client()
+    tid = task.request.id
+    if r is None or not tid:
+        yield
+        return
+    info = json.dumps(
+        {
+            "job": job_id,
+            "task": task.name,
+            "args": list(task.request.args or []),
+            "pid": os.getpid(),
+            "hostname": task.request.hostname,
+            "started": time.time(),
+        }
+    )
+    stop = threading.Event()
+
+    def heartbeat() -> None:
+        while not stop.wait(HEARTBEAT_S):
+            try:
+                r.set(alive_key(tid), info, ex=ALIVE_TTL_S)
+            except redis.RedisError as e:
+                log.warning("heartbeat of task %s: %s", tid, e)
+
+    try:
+        pipe = r.pipeline()
+        pipe.sadd(tasks_key(job_id), tid).expire(tasks_key(job_id), TASKS_TTL_S)
+        pipe.set(alive_key(tid), info, ex=ALIVE_TTL_S)
+        pipe.execute()
+    except redis.RedisError as e:
+        log.warning("could not register task %s of job %s: %s", tid, job_id, e)
+    beat = threading.Thread(target=heartbeat, name=f"heartbeat-{tid}", daemon=True)
+    beat.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        try:
+            r.pipeline().srem(tasks_key(job_id), tid).delete(alive_key(tid)).execute()
+        except redis.RedisError as e:
+            log.warning("could not unregister task %s of job %s: %s", tid, job_id, e)
+
+
+# -- error policy --------------------------------------------------------------------------------
+def _guarded(task: Any, job_id: str, stage: str | None, fn: Callable[[Any], Any]) -> Any:
+    settings = get_settings()
+    try:
+        with tracked(task, job_id):
+            return fn(settings)
+    except execute.JobStopped as e:
+        log.info("job %s: %s stopped: %s", job_id, task.name, e)
+        raise Ignore() from None
+    except (Ignore, Reject, Retry):
+        raise
+    except Exception as e:
+        retries = int(task.request.retries or 0)
+        if execute.is_transient(e) and retries < settings.task_max_retries:
+            delay = execute.backoff_s(retries)
+            log.warning(
+                "job %s: %s failed with a transient error (%s: %s); retry %d/%d in %.0f s",
+                job_id, task.name, type(e).__name__, e, retries + 1, settings.task_max_retries, delay,
+            )  # fmt: skip
+            raise task.retry(exc=e, countdown=delay, max_retries=settings.task_max_retries) from e
+        log.exception("job %s: %s failed", job_id, task.name)
+        try:
+            execute.fail(job_id, stage, e, settings=settings)
+        except Exception:
+            log.exception("job %s: could not record the failure", job_id)
+        raise
+
+
+# -- canvas --------------------------------------------------------------------------------------
+def stage_sig(job_id: str, stage: str) -> Any:
+    return run_stage.si(job_id, stage).set(queue=STAGE_QUEUES[stage])
+
+
+def views_canvas(job_id: str, views: list[str], after: list[str]) -> Any:
+    """chord(one match_view per view) -> run_stage(match_views) -> the stages after -> finalize."""
+    body = chain(
+        stage_sig(job_id, "match_views"),
+        *[stage_sig(job_id, s) for s in after],
+        finalize.si(job_id).set(queue=TASK_QUEUES[FINALIZE]),
+    )
+    if not views:
+        return body
+    header = [match_view.si(job_id, v).set(queue=TASK_QUEUES[MATCH_VIEW]) for v in views]
+    return chord(header, body)
+
+
+# -- tasks ---------------------------------------------------------------------------------------
+@app.task(bind=True, name=RUN_STAGE)
+def run_stage(self: Any, job_id: str, stage: str) -> dict:
+    """One pipeline stage of a job."""
+    worker = f"{self.request.hostname}:{os.getpid()}"
+    return _guarded(
+        self, job_id, stage, lambda s: execute.execute_stage(job_id, stage, settings=s, worker=worker)
+    )
+
+
+@app.task(bind=True, name=MATCH_VIEW)
+def match_view(self: Any, job_id: str, view: str) -> dict:
+    """One rendered view of the match_views fan-out."""
+    worker = f"{self.request.hostname}:{os.getpid()}"
+    return _guarded(
+        self,
+        job_id,
+        "match_views",
+        lambda s: execute.execute_match_view(job_id, view, settings=s, worker=worker),
+    )
+
+
+@app.task(bind=True, name=FAN_OUT_VIEWS)
+def fan_out_views(self: Any, job_id: str, after: list[str]) -> Any:
+    """Prepare match_views (features of the candidate images, once), then replace this task by the
+    chord of the views followed by the stages `after` match_views and finalize."""
+    worker = f"{self.request.hostname}:{os.getpid()}"
+    views = _guarded(
+        self, job_id, "match_views", lambda s: execute.prepare_match_views(job_id, settings=s, worker=worker)
+    )
+    log.info("job %s: fanning out %d views, then %s", job_id, len(views), ["match_views", *after])
+    raise self.replace(views_canvas(job_id, list(views), list(after)))
+
+
+@app.task(bind=True, name=FINALIZE)
+def finalize(self: Any, job_id: str) -> dict:
+    """The job succeeded: status, metrics, webhook event."""
+    return _guarded(self, job_id, None, lambda s: execute.finalize(job_id, settings=s))
+
+
+@app.task(name=RECONCILE)
+def reconcile() -> list[dict]:
+    """Re-dispatch jobs that stalled (see workers.reconcile)."""
+    from shared.db.models import utcnow
+    from shared.db.session import get_engine, session_scope
+    from workers.dispatch import CeleryDispatcher
+    from workers.reconcile import RedisLiveness
+    from workers.reconcile import reconcile as run_reconcile
+
+    settings = get_settings()
+    r = redis_client()
+    live = RedisLiveness(r).snapshot() if r is not None else None
+    with session_scope(get_engine(settings.database_url)) as session:
+        actions = run_reconcile(
+            session, CeleryDispatcher(settings, app=app), utcnow(), settings.stall_timeout_s, is_live=live
+        )
+    return [a.as_dict() for a in actions]
+
+
+@app.task(name=DELIVER_WEBHOOKS)
+def deliver_webhooks() -> int:
+    """Send the webhook deliveries that are due."""
+    from api.webhooks import deliver_due
+    from shared.db.session import get_engine, session_scope
+
+    with session_scope(get_engine(get_settings().database_url)) as session:
+        return deliver_due(session)
