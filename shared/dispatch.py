@@ -10,8 +10,8 @@ InvalidTransitionError (the job was cancelled meanwhile).
 Implementations are looked up by name (`dispatcher` setting) and imported lazily, so that the API does
 not import Celery unless it is used:
 
-- "celery": the Celery canvas over the gpu/cpu/reduce queues (workers/, not written yet);
-- "embedded": an in-process worker thread for the single-machine default (not written yet).
+- "celery": the Celery canvas over the gpu/cpu/reduce queues (workers/dispatch.py);
+- "embedded": an in-process worker thread for the single-machine default (workers/embedded.py).
 
 `register_dispatcher(name, factory)` adds or replaces one (tests, plugins).
 """
