@@ -1,0 +1,471 @@
+"""Service benchmark: API latency (GET /jobs/{id} vs GET /healthz), upload throughput through the API vs
+direct S3, and the match_views stage time with 1 and 2 Celery worker processes.
+
+Starts its own throwaway PostgreSQL database, SeaweedFS (`weed mini`), Redis db, uvicorn and Celery
+workers (helpers of tests/servers.py); everything is stopped and removed at the end.
+
+    python bench/service.py [--clients 50] [--requests 2000] [--upload-mb 64] [--skip-workers]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+import servers  # noqa: E402  (tests/servers.py: PostgreSQL, SeaweedFS helpers)
+
+WORKER_OPTIONS = {  # as tests/test_service_e2e.py: small enough for `tiny` on 2 cores
+    "view_planner": "ground-aware",
+    "views_per_ground_image": 1,
+    "splat_steps": 1000,
+    "splat_max_width": 240,
+    "max_keypoints": 1024,
+    "seed": 0,
+}
+JOB_TIMEOUT_S = 600
+
+
+def wait_until(check: Any, timeout: float, what: str, proc: Any = None, log: Path | None = None) -> None:
+    deadline = time.monotonic() + timeout
+    last: Exception | None = None
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(
+                f"{what}: process exited {proc.returncode}\n{servers._tail(log) if log else ''}"
+            )
+        try:
+            if check():
+                return
+        except Exception as e:  # noqa: BLE001 - retried until the deadline
+            last = e
+        time.sleep(0.2)
+    raise RuntimeError(f"{what} not ready after {timeout} s ({last})\n{servers._tail(log) if log else ''}")
+
+
+class Stack:
+    """The servers of one benchmark run; stop() cleans up whatever was started."""
+
+    def __init__(self) -> None:
+        self.tmp = Path(tempfile.mkdtemp(prefix="mvbench-"))
+        self.procs: list[Any] = []
+        self.pg: servers.PostgresServer | None = None
+        self.redis_db: tuple[str, int] | None = None
+        self.weed_ports: list[int] = []
+        self.s3: dict[str, str] | None = None
+        self.env: dict[str, str] = {}
+        self.notes: list[str] = []
+
+    # PostgreSQL
+    def start_postgres(self) -> str:
+        from shared.db.session import upgrade_database
+
+        user = servers._pg_user()
+        if user is None:
+            servers._start_local_postgres()
+            wait_until(lambda: servers._pg_user() is not None, 15, "PostgreSQL")
+            user = servers._pg_user()
+        self.pg = servers.PostgresServer(user=user)
+        url = self.pg.create_database()
+        upgrade_database(url)
+        return url
+
+    # Redis: an empty db of the local server, else a private redis-server
+    def start_redis(self) -> str:
+        import redis
+
+        try:
+            redis.Redis(host="127.0.0.1", port=6379, socket_connect_timeout=1).ping()
+            for db in range(15, 0, -1):
+                r = redis.Redis(host="127.0.0.1", port=6379, db=db)
+                if r.dbsize() == 0:
+                    self.redis_db = ("127.0.0.1:6379", db)
+                    return f"redis://127.0.0.1:6379/{db}"
+        except redis.RedisError:
+            pass
+        (port,) = servers.free_ports(1)
+        folder = self.tmp / "redis"
+        folder.mkdir()
+        args = [
+            "redis-server",
+            "--port",
+            str(port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+        ]
+        proc = servers._spawn([*args, "--dir", str(folder)], folder / "redis.log")
+        self.procs.append(proc)
+        wait_until(lambda: redis.Redis(port=port).ping(), 10, "redis-server", proc, folder / "redis.log")
+        return f"redis://127.0.0.1:{port}/0"
+
+    # SeaweedFS S3
+    def start_s3(self) -> dict[str, str] | None:
+        import boto3
+        from botocore.config import Config
+
+        weed = servers.weed_binary()
+        if weed is None:
+            self.notes.append("no `weed` binary: local storage")
+            return None
+        folder = Path(tempfile.mkdtemp(prefix="w", dir="/tmp"))  # short path for its unix sockets
+        self.weed_folder = folder
+        access, secret = "midview-bench", uuid.uuid4().hex
+        identity = {
+            "name": "midview-bench",
+            "credentials": [{"accessKey": access, "secretKey": secret}],
+            "actions": ["Admin", "Read", "Write", "List", "Tagging"],
+        }
+        (folder / "s3.json").write_text(json.dumps({"identities": [identity]}))
+        self.weed_ports = [*servers.free_ports(8), *servers.free_port_pair()]
+        log = folder / "weed.log"
+        env = {**os.environ, "TMPDIR": str(folder)}
+        cmd = servers.weed_mini_command(weed, folder, self.weed_ports, folder / "s3.json")
+        proc = servers._spawn(cmd, log, cwd=folder, env=env)
+        self.procs.append(proc)
+        s3 = {
+            "endpoint": f"http://127.0.0.1:{self.weed_ports[6]}",
+            "access": access,
+            "secret": secret,
+            "bucket": f"midview-bench-{uuid.uuid4().hex[:8]}",
+        }
+        client = boto3.client(
+            "s3",
+            endpoint_url=s3["endpoint"],
+            aws_access_key_id=access,
+            aws_secret_access_key=secret,
+            region_name="us-east-1",
+            config=Config(connect_timeout=1, read_timeout=10, retries={"max_attempts": 1}),
+        )
+        try:
+            wait_until(
+                lambda: servers._s3_round_trip(client, s3["bucket"]) or True, 40, "SeaweedFS", proc, log
+            )
+        except RuntimeError as e:
+            self.notes.append(f"SeaweedFS did not start ({str(e).splitlines()[0]}): local storage")
+            return None
+        self.s3 = s3
+        return s3
+
+    def s3_client(self) -> Any:
+        import boto3
+
+        assert self.s3 is not None
+        return boto3.client(
+            "s3",
+            endpoint_url=self.s3["endpoint"],
+            aws_access_key_id=self.s3["access"],
+            aws_secret_access_key=self.s3["secret"],
+            region_name="us-east-1",
+        )
+
+    def start(self) -> None:
+        db_url = self.start_postgres()
+        broker = self.start_redis()
+        s3 = self.start_s3()
+        env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
+        values = {
+            "DATA_DIR": self.tmp / "api",
+            "WORK_DIR": self.tmp / "work-api",
+            "UPLOAD_TMP_DIR": self.tmp,
+            "DATABASE_URL": db_url,
+            "BROKER_URL": broker,
+            "RESULT_BACKEND": broker,
+            "DISPATCHER": "celery",
+            "NUM_THREADS": 1,
+            "LOG_LEVEL": "WARNING",
+        }
+        if s3 is not None:
+            values.update(
+                STORAGE="s3",
+                S3_ENDPOINT_URL=s3["endpoint"],
+                S3_BUCKET=s3["bucket"],
+                S3_REGION="us-east-1",
+                S3_ACCESS_KEY=s3["access"],
+                S3_SECRET_KEY=s3["secret"],
+            )
+        else:
+            values.update(STORAGE="local", STORAGE_ROOT=self.tmp / "storage")
+        env.update({f"MIDVIEW_{k}": str(v) for k, v in values.items()})
+        env["PYTHONUNBUFFERED"] = "1"
+        env["OMP_NUM_THREADS"] = "1"
+        self.env = env
+
+    def start_api(self) -> str:
+        import httpx
+
+        (port,) = servers.free_ports(1)
+        log = self.tmp / "uvicorn.log"
+        args = [sys.executable, "-m", "uvicorn", "--factory", "api.main:create_app", "--host", "127.0.0.1",
+                "--port", str(port), "--log-level", "warning", "--no-access-log"]  # fmt: skip
+        proc = servers._spawn(args, log, cwd=ROOT, env=self.env)
+        self.procs.append(proc)
+        base = f"http://127.0.0.1:{port}"
+        wait_until(lambda: httpx.get(f"{base}/healthz").status_code == 200, 60, "uvicorn", proc, log)
+        return base
+
+    def start_worker(self, i: int) -> Any:
+        folder = self.tmp / f"worker{i}"
+        folder.mkdir()
+        log = folder / "worker.log"
+        env = {**self.env, "MIDVIEW_WORK_DIR": str(folder / "work"), "MIDVIEW_LOG_LEVEL": "INFO"}
+        args = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-Q", "gpu,cpu,reduce",
+                "-c", "1", "-P", "prefork", "-l", "INFO", "-n", f"mvbench{i}-{uuid.uuid4().hex[:6]}@%h",
+                "--without-gossip", "--without-mingle", "--without-heartbeat"]  # fmt: skip
+        proc = servers._spawn(args, log, cwd=ROOT, env=env)
+        self.procs.append(proc)
+        wait_until(lambda: "ready." in log.read_text(errors="replace"), 90, f"worker {i}", proc, log)
+        return proc
+
+    def stop(self) -> None:
+        for proc in reversed(self.procs):
+            with contextlib.suppress(Exception):
+                servers._stop(proc, timeout=10)
+        if self.pg is not None:
+            with contextlib.suppress(Exception):
+                self.pg.drop_all()
+        if self.redis_db is not None:
+            import redis
+
+            with contextlib.suppress(Exception):
+                redis.Redis(host="127.0.0.1", port=6379, db=self.redis_db[1]).flushdb()
+        for port in self.weed_ports:
+            for sock in Path("/tmp").glob(f"seaweedfs-*-{port}.sock"):
+                sock.unlink(missing_ok=True)
+        if getattr(self, "weed_folder", None) is not None:
+            shutil.rmtree(self.weed_folder, ignore_errors=True)
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+# 1. latency
+async def hammer(base: str, path: str, headers: dict[str, str], clients: int, n: int) -> dict[str, float]:
+    import httpx
+
+    limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+    latencies: list[float] = []
+    errors = 0
+    remaining = n
+
+    async with httpx.AsyncClient(base_url=base, headers=headers, limits=limits, timeout=60) as client:
+        for _ in range(min(clients, 50)):  # warm up connections and the app
+            await client.get(path)
+
+        async def worker() -> None:
+            nonlocal remaining, errors
+            while remaining > 0:
+                remaining -= 1
+                t0 = time.perf_counter()
+                r = await client.get(path)
+                latencies.append(time.perf_counter() - t0)
+                if r.status_code != 200:
+                    errors += 1
+
+        t0 = time.perf_counter()
+        await asyncio.gather(*(worker() for _ in range(clients)))
+        wall = time.perf_counter() - t0
+    latencies.sort()
+    q = statistics.quantiles(latencies, n=100, method="inclusive")
+    return {"p50": q[49] * 1e3, "p99": q[98] * 1e3, "rps": len(latencies) / wall, "errors": errors}
+
+
+# 2. uploads
+def make_jpeg(mb: float) -> bytes:
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    sample = rng.integers(0, 256, (256, 256, 3), dtype=np.uint8)
+    per_px = len(cv2.imencode(".jpg", sample, [cv2.IMWRITE_JPEG_QUALITY, 95])[1]) / sample.shape[0] ** 2
+    side = int((mb * 1024 * 1024 / per_px) ** 0.5)
+    img = rng.integers(0, 256, (side, side, 3), dtype=np.uint8)
+    return cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+
+
+def bench_uploads(stack: Stack, base: str, headers: dict[str, str], project_id: str, mb: float, n: int):
+    import httpx
+
+    data = make_jpeg(mb)
+    size_mb = len(data) / 1024 / 1024
+    api_times = []
+    with httpx.Client(base_url=base, headers=headers, timeout=600) as client:
+        for i in range(n):
+            t0 = time.perf_counter()
+            r = client.post(
+                f"/projects/{project_id}/images?set=aerial",
+                files=[("files", (f"U{i:04d}.jpg", data, "image/jpeg"))],
+            )
+            api_times.append(time.perf_counter() - t0)
+            if r.status_code not in (200, 201):
+                raise RuntimeError(f"upload failed {r.status_code}: {r.text[:500]}")
+    direct_times = []
+    if stack.s3 is not None:
+        s3 = stack.s3_client()
+        for i in range(n):
+            t0 = time.perf_counter()
+            s3.put_object(Bucket=stack.s3["bucket"], Key=f"bench/direct-{i}.jpg", Body=data)
+            direct_times.append(time.perf_counter() - t0)
+    return size_mb, api_times, direct_times
+
+
+# 3. workers
+def wait_job(client: Any, job_id: str, timeout: float) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while True:
+        job = client.get(f"/jobs/{job_id}").json()
+        if job["status"] in ("succeeded", "failed", "cancelled"):
+            return job
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"job not finished after {timeout} s: {job['status']} {job['current_stage']}")
+        time.sleep(0.5)
+
+
+def bench_workers(stack: Stack, base: str, headers: dict[str, str], tenant_id: str) -> dict[str, Any]:
+    import httpx
+
+    from services import synth
+    from shared.storage import get_storage
+    from workers.jobsync import cameras_key
+
+    scene = synth.main(synth.confs["tiny"], stack.tmp / "tiny", seed=0)
+    out: dict[str, Any] = {}
+    with httpx.Client(base_url=base, headers=headers, timeout=600) as c:
+        r = c.post("/projects", json={"name": f"tiny-{uuid.uuid4().hex[:6]}"})
+        r.raise_for_status()
+        pid = r.json()["id"]
+        for image_set in ("aerial", "ground"):
+            files = [("files", (p.name, p.read_bytes(), "image/jpeg"))
+                     for p in sorted((scene / "images" / image_set).iterdir())]  # fmt: skip
+            c.post(f"/projects/{pid}/images?set={image_set}", files=files).raise_for_status()
+        c.post(f"/projects/{pid}/pos", files={"file": ("pos.csv", (scene / "pos.csv").read_bytes())})
+        from shared.config import Settings
+
+        storage = get_storage(
+            Settings(**{k[8:].lower(): v for k, v in stack.env.items() if k[:8] == "MIDVIEW_"})
+        )
+        storage.put_bytes(cameras_key(tenant_id, pid), (scene / "cameras.json").read_bytes())
+
+        # a fresh job per setting (a rerun is answered from the worker's local cache and matches nothing)
+        for workers in (1, 2):
+            stack.start_worker(workers)
+            t0 = time.monotonic()
+            r = c.post(f"/projects/{pid}/jobs", json={"options": WORKER_OPTIONS})
+            r.raise_for_status()
+            job = wait_job(c, r.json()["id"], JOB_TIMEOUT_S)
+            if job["status"] != "succeeded":
+                raise RuntimeError(f"job with {workers} workers {job['status']}: {job.get('error')}")
+            out[workers] = job["timings"].get("match_views")
+            out[f"job{workers}_s"] = time.monotonic() - t0
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--clients", type=int, default=50)
+    ap.add_argument("--requests", type=int, default=2000)
+    ap.add_argument("--upload-mb", type=float, default=64)
+    ap.add_argument("--uploads", type=int, default=4)
+    ap.add_argument("--skip-workers", action="store_true")
+    args = ap.parse_args()
+
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    stack = Stack()
+    rows: list[tuple[str, str, str]] = []
+    try:
+        with console.status("starting PostgreSQL, Redis, SeaweedFS, uvicorn"):
+            stack.start()
+            base = stack.start_api()
+        from api.bootstrap import create_tenant_with_key
+        from shared.db import crud
+        from shared.db.session import make_engine, session_scope
+
+        engine = make_engine(stack.env["MIDVIEW_DATABASE_URL"])
+        with session_scope(engine) as s:
+            key = create_tenant_with_key(s, f"bench-{uuid.uuid4().hex[:8]}")
+            tenant_id = crud.get_api_key(s, key).tenant_id
+            project = crud.create_project(s, tenant_id, "bench")
+            job = crud.create_job(s, project.id)
+            project_id, job_id = project.id, job.id
+        engine.dispose()
+        headers = {"Authorization": f"Bearer {key}"}
+        storage = "SeaweedFS S3" if stack.s3 else "local"
+
+        with console.status(f"GET latency, {args.clients} clients x {args.requests} requests"):
+            health = asyncio.run(hammer(base, "/healthz", headers, args.clients, args.requests))
+            jobs = asyncio.run(hammer(base, f"/jobs/{job_id}", headers, args.clients, args.requests))
+        for name, m in (("GET /healthz", health), ("GET /jobs/{id}", jobs)):
+            rows.append((f"{name} p50 / p99", f"{m['p50']:.1f} / {m['p99']:.1f} ms", f"{m['errors']} errors"))
+            rows.append((f"{name} throughput", f"{m['rps']:.0f} req/s", f"{args.clients} clients"))
+        rows.append((
+            "jobs / healthz",
+            f"p50 x{jobs['p50'] / health['p50']:.2f}, p99 x{jobs['p99'] / health['p99']:.2f}",
+            f"throughput x{jobs['rps'] / health['rps']:.2f}",
+        ))  # fmt: skip
+
+        with console.status(f"uploads of {args.upload_mb} MB"):
+            size_mb, api_t, direct_t = bench_uploads(
+                stack, base, headers, project_id, args.upload_mb, args.uploads
+            )
+        api_mbs = size_mb * len(api_t) / sum(api_t)
+        rows.append((
+            "upload through API",
+            f"{api_mbs:.1f} MB/s",
+            f"{len(api_t)} x {size_mb:.1f} MB JPEG, {storage}, median {statistics.median(api_t):.2f} s",
+        ))  # fmt: skip
+        if direct_t:
+            direct_mbs = size_mb * len(direct_t) / sum(direct_t)
+            rows.append(("boto3 put_object direct", f"{direct_mbs:.1f} MB/s", "same bytes, same S3 server"))
+            rows.append(("API / direct", f"x{api_mbs / direct_mbs:.2f}", ""))
+        else:
+            rows.append(("boto3 put_object direct", "not measured", "no S3 server"))
+
+        if args.skip_workers:
+            rows.append(("match_views, 1 / 2 workers", "not measured", "--skip-workers"))
+        else:
+            try:
+                with console.status("tiny job through Celery workers (minutes)"):
+                    w = bench_workers(stack, base, headers, tenant_id)
+                for n in (1, 2):
+                    rows.append((
+                        f"match_views, {n} worker process{'es' if n > 1 else ''}",
+                        f"{w[n]:.1f} s",
+                        f"fresh tiny job, whole job {w[f'job{n}_s']:.1f} s",
+                    ))  # fmt: skip
+                rows.append(("match_views 2 / 1 workers", f"x{w[2] / w[1]:.2f}", "time ratio (< 1: faster)"))
+            except Exception as e:  # noqa: BLE001 - reported in the table
+                rows.append(("match_views, 1 / 2 workers", "not measured", str(e).splitlines()[0][:200]))
+    finally:
+        stack.stop()
+
+    table = Table(title=f"midview service ({os.cpu_count()} cores)")
+    table.add_column("measure")
+    table.add_column("value", justify="right")
+    table.add_column("notes")
+    for row in rows:
+        table.add_row(*row)
+    console.print(table)
+    for note in stack.notes:
+        console.print(f"note: {note}")
+
+
+if __name__ == "__main__":
+    main()
