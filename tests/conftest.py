@@ -244,11 +244,9 @@ def celery_worker(service_settings, tmp_path_factory):
 
 def upload_survey(client, tenant, scene, storage, name=None, cameras=True):
     """Create a project of tenant (id, headers) and upload a survey folder over HTTP (images of both
-    sets, pos.csv); the cameras.json goes to the project's storage key (workers.jobsync.cameras_key:
-    there is no API route for it yet). Returns the project id."""
+    sets, pos.csv, cameras.json). `storage` is unused (kept for callers). Returns the project id."""
+    import json
     import uuid
-
-    from workers.jobsync import cameras_key
 
     headers = tenant.headers
     r = client.post("/projects", json={"name": name or f"survey-{uuid.uuid4().hex[:8]}"}, headers=headers)
@@ -265,7 +263,9 @@ def upload_survey(client, tenant, scene, storage, name=None, cameras=True):
     r = client.post(f"/projects/{project['id']}/pos", files={"file": ("pos.csv", pos)}, headers=headers)
     assert r.status_code == 200, r.text
     if cameras:
-        storage.put_bytes(cameras_key(tenant.id, project["id"]), (scene / "cameras.json").read_bytes())
+        body = json.loads((scene / "cameras.json").read_text())
+        r = client.put(f"/projects/{project['id']}/cameras", json=body, headers=headers)
+        assert r.status_code == 200, r.text
     return project["id"]
 
 

@@ -555,3 +555,24 @@ def test_errors_are_json(api_env) -> None:
     assert r.status_code == 422 and isinstance(r.json()["detail"], list)
     r = api_env.client.get("/nowhere")
     assert r.status_code == 404 and "detail" in r.json()
+
+
+def test_camera_intrinsics_round_trip_and_validation(api_env) -> None:
+    client, tenant = api_env.client, api_env.tenant()
+    headers = tenant.headers
+    url = f"/projects/{new_project(api_env, tenant)}/cameras"
+    assert client.get(url, headers=headers).status_code == 404
+    good = {"aerial": {"model": "PINHOLE", "width": 1600, "height": 1200, "params": [1300, 1300, 800, 600]}}
+    r = client.put(url, json=good, headers=headers)
+    assert r.status_code == 200, r.text
+    assert client.get(url, headers=headers).json() == good
+    for bad in (
+        {"aerial": {"model": "PINHOLE", "width": 1600, "height": 1200, "params": [1300, 800, 600]}},
+        {"aerial": {"model": "FISHEYE_X", "width": 1600, "height": 1200, "params": [1300]}},
+        {"aerial": {"model": "PINHOLE", "width": 0, "height": 1200, "params": [1300, 1300, 800, 600]}},
+        {"air": good["aerial"]},
+        {},
+    ):
+        assert client.put(url, json=bad, headers=headers).status_code == 422, bad
+    assert client.get(url, headers=headers).json() == good  # the bad requests left it untouched
+    assert client.get(url, headers=api_env.tenant().headers).status_code == 404  # another tenant

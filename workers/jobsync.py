@@ -41,7 +41,7 @@ from shared.db import crud
 from shared.db.models import Job as JobRow
 from shared.job_options import JobOptions
 from shared.storage import Storage, StorageKeyError
-from shared.storage.keys import project_prefix
+from shared.storage.keys import cameras_key
 
 log = logging.getLogger("midview.workers.jobsync")
 
@@ -85,10 +85,6 @@ def job_storage_prefix(job_row: JobRow) -> str:
 
 def files_key(prefix: str, rel: str) -> str:
     return f"{prefix}{FILES_DIR}{rel}"
-
-
-def cameras_key(tenant_id: str, project_id: str) -> str:
-    return f"{project_prefix(tenant_id, project_id)}{CAMERAS_FILE}"
 
 
 def stable_mtime_ns(hexdigest: str) -> int:

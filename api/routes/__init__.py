@@ -1,6 +1,6 @@
 """Routers of the REST API, one module per resource."""
 
-from api.routes import artifacts, health, images, jobs, pos, projects, uploads, webhooks
+from api.routes import artifacts, cameras, health, images, jobs, pos, projects, uploads, webhooks
 
 ROUTERS = [
     health.router,
@@ -8,6 +8,7 @@ ROUTERS = [
     images.router,
     uploads.router,
     pos.router,
+    cameras.router,
     jobs.router,
     artifacts.router,
     webhooks.router,

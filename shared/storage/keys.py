@@ -73,6 +73,11 @@ def project_prefix(tenant_id: object, project_id: object) -> str:
     return f"{tenant_prefix(tenant_id)}projects/{component(project_id, 'project')}/"
 
 
+def cameras_key(tenant_id: object, project_id: object) -> str:
+    """`tenants/{tenant}/projects/{project}/cameras.json`: the project's intrinsics per image set."""
+    return f"{project_prefix(tenant_id, project_id)}cameras.json"
+
+
 def image_key(tenant_id: object, project_id: object, image_set: str, filename: str) -> str:
     """`tenants/{tenant}/projects/{project}/images/{set}/{filename}`"""
     return (
