@@ -32,7 +32,7 @@ DEMO_OPTIONS = {
     "matcher": "aliked-lightglue",
     "view_planner": "paper",  # the best single planner (bench/method.py); "both" is better, twice the views
     "views_per_ground_image": 2,
-    "splat_steps": 1200,
+    "splat_steps": 1000,
     "splat_max_width": 400,
     "max_keypoints": 1024,
     "seed": 0,
@@ -258,6 +258,7 @@ def demo(
     views_per_ground_image: int = typer.Option(DEMO_OPTIONS["views_per_ground_image"]),
     splat_steps: int = typer.Option(DEMO_OPTIONS["splat_steps"]),
     max_keypoints: int = typer.Option(DEMO_OPTIONS["max_keypoints"]),
+    supersample: int = typer.Option(1, help="synthesis supersampling (the preset's is 2: slower, smoother)"),
     baselines: bool = typer.Option(True, help="also run the direct baselines"),
     baseline_sfm: bool = typer.Option(True, help="reconstruct with the baselines' matches too (their NRI)"),
 ) -> None:
@@ -278,7 +279,9 @@ def demo(
     t0 = time.perf_counter()
     if not scene_complete(scene):
         console.print(f"rendering the {preset} survey into {scene} (textures: {tex})")
-        synth.main(synth.confs[preset], scene, seed=seed, textures_dir=tex, overwrite=True)
+        synth.main(
+            synth.confs[preset], scene, seed=seed, textures_dir=tex, supersample=supersample, overwrite=True
+        )
     timings["synth"] = time.perf_counter() - t0
     options = {
         **DEMO_OPTIONS,
