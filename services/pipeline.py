@@ -658,11 +658,19 @@ def run_stage(job: Job, stage: str, progress: Progress | None = None, force: boo
     missing = [str(p) for p in sd.outputs(job) if not Path(p).exists()]
     if missing:
         raise RuntimeError(f"stage {stage} finished without its outputs: {missing}")
+    marker = write_marker(job, stage, summary, seconds=round(time.perf_counter() - t0, 2))
+    prog(stage, 1.0, "finished")
+    return {**marker, "skipped": False}
+
+
+def write_marker(job: Job, stage: str, summary: Any, seconds: float) -> dict:
+    """Record a finished stage (atomically): its input fingerprint, outputs, duration and summary."""
+    sd = REGISTRY[stage]
     marker = {
         "stage": stage,
         "fingerprint": fingerprint(sd.conf(job), sd.inputs(job), job.root),
         "outputs": [str(p) for p in sd.outputs(job)],
-        "seconds": round(time.perf_counter() - t0, 2),
+        "seconds": seconds,
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "summary": summary,
     }
@@ -670,8 +678,7 @@ def run_stage(job: Job, stage: str, progress: Progress | None = None, force: boo
     tmp = marker_path(job, stage).with_suffix(".json.tmp")
     tmp.write_text(json.dumps(marker, indent=1, default=str))
     tmp.replace(marker_path(job, stage))
-    prog(stage, 1.0, "finished")
-    return {**marker, "skipped": False}
+    return marker
 
 
 def mark_done(job: Job, stage: str, summary: dict | None = None) -> dict:
@@ -681,16 +688,7 @@ def mark_done(job: Job, stage: str, summary: dict | None = None) -> dict:
     missing = [str(p) for p in sd.outputs(job) if not Path(p).exists()]
     if missing:
         raise FileNotFoundError(f"stage {stage}: outputs missing: {missing}")
-    marker = {
-        "stage": stage,
-        "fingerprint": fingerprint(sd.conf(job), sd.inputs(job), job.root),
-        "outputs": [str(p) for p in sd.outputs(job)],
-        "seconds": 0.0,
-        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "summary": {**(summary or {}), "adopted": True},
-    }
-    job.stages_dir.mkdir(parents=True, exist_ok=True)
-    marker_path(job, stage).write_text(json.dumps(marker, indent=1, default=str))
+    marker = write_marker(job, stage, {**(summary or {}), "adopted": True}, seconds=0.0)
     return marker
 
 

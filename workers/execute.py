@@ -384,10 +384,8 @@ def execute_stage(job_id: str, stage: str, *, settings: Any, worker: str | None 
     try:
         job = _materialize(ctx, info)
         report = ProgressReporter(ctx, info)
-        if stage == "match_views":
-            marker = _complete_match_views(job, report)
-        else:
-            marker = pipeline.run_stage(job, stage, progress=report)
+        # after the fan-out, match_views finds every view up to date and only writes its marker
+        marker = pipeline.run_stage(job, stage, progress=report)
         _push_stage(ctx, info, job, stage)
         with ctx.session() as s:
             _live_row(s, job_id)
@@ -465,51 +463,6 @@ def execute_match_view(job_id: str, view: str, *, settings: Any, worker: str | N
         "match_views", min(len(done & set(names)), len(names)) / max(len(names), 1), f"matched view {view}"
     )
     return {"view": view, "file": path.relative_to(job.root).as_posix(), "seconds": round(seconds, 2)}
-
-
-def _complete_match_views(job: Any, report: ProgressReporter) -> dict:
-    """The match_views stage after its fan-out: every view matched (up-to-date views are skipped),
-    matches of views no longer planned removed, the marker written as services.pipeline.run_stage does.
-
-    services.pipeline.run_stage(job, "match_views") is not called here: its prepare_match_views opens
-    the feature cache for writing, which changes the file's modification time, so that every view's
-    match file (whose fingerprint includes it) would be considered stale and matched again. Without a
-    prepared feature cache (no fan-out ran), it falls back to run_stage."""
-    from services import pipeline
-
-    stage = "match_views"
-    if pipeline.is_done(job, stage) or not job.features_path.is_file():
-        return pipeline.run_stage(job, stage, progress=report)
-    sd = pipeline.REGISTRY[stage]
-    report(stage, 0.0, "started")
-    t0 = time.perf_counter()
-    names = pipeline.view_names(job)
-    for i, n in enumerate(names):
-        pipeline.match_view_unit(job, n)
-        report(stage, (i + 1) / max(len(names), 1), f"view {n}")
-    keep = {f"{n}.h5" for n in names}
-    for p in job.dir("matches").glob("*"):
-        if p.is_file() and p.name not in keep:
-            p.unlink()
-    job.dir("matches").mkdir(parents=True, exist_ok=True)
-    missing = [str(p) for p in sd.outputs(job) if not Path(p).exists()]
-    if missing:
-        raise RuntimeError(f"stage {stage} finished without its outputs: {missing}")
-    marker = {
-        "stage": stage,
-        "fingerprint": pipeline.fingerprint(sd.conf(job), sd.inputs(job), job.root),
-        "outputs": [str(p) for p in sd.outputs(job)],
-        "seconds": round(time.perf_counter() - t0, 2),
-        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "summary": {"num_views": len(names)},
-    }
-    job.stages_dir.mkdir(parents=True, exist_ok=True)
-    path = pipeline.marker_path(job, stage)
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(marker, indent=1, default=str))
-    tmp.replace(path)
-    report(stage, 1.0, "finished")
-    return {**marker, "skipped": False}
 
 
 def _json_safe(value: Any) -> Any:
