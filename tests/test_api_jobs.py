@@ -58,18 +58,27 @@ def test_event_stream_follows_the_job_to_its_end(api_env, make_jpeg) -> None:
     t = api_env.tenant()
     _, jid = _job(api_env, t, make_jpeg)
     steps = [(0.1, "aerial_sfm"), (0.5, "train_splat"), (0.9, "reduce")]
+    # The test thread plays the worker; it makes its next change only once the stream has reported the
+    # previous state, so the test does not depend on how fast the stream polls on a loaded machine.
+    reported = threading.Semaphore(0)
 
     def worker() -> None:
-        time.sleep(0.3)
         for progress, stage in steps:
+            assert reported.acquire(timeout=10)
             with api_env.session() as s:
                 crud.update_job_progress(s, jid, progress, stage)
                 s.commit()
-            time.sleep(0.3)
+        assert reported.acquire(timeout=10)
         with api_env.session() as s:
             crud.update_job_results(s, jid, metrics={"pairs": 3})
             crud.set_job_status(s, jid, JobStatus.succeeded)
             s.commit()
+
+    def lines(it):
+        for line in it:
+            if line.startswith("event: progress"):
+                reported.release()
+            yield line
 
     thread = threading.Thread(target=worker, daemon=True)
     thread.start()
@@ -77,9 +86,9 @@ def test_event_stream_follows_the_job_to_its_end(api_env, make_jpeg) -> None:
     with api_env.client.stream("GET", f"/jobs/{jid}/events", headers=t.headers) as r:
         assert r.status_code == 200
         assert r.headers["content-type"].startswith("text/event-stream")
-        events = _read_events(r.iter_lines())
+        events = _read_events(lines(r.iter_lines()))
     thread.join(5)
-    assert time.monotonic() - t0 < 10
+    assert time.monotonic() - t0 < 20
     progress = [d for name, d in events if name == "progress"]
     assert progress[0]["status"] == "queued" and progress[0]["progress"] == 0
     seen = [(d["progress"], d["stage"]) for d in progress if d["status"] == "running"]
