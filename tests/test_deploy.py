@@ -53,3 +53,28 @@ def test_kubernetes_workers_scale_on_their_queue():
     for queue in set(STAGE_QUEUES.values()):
         trigger = scaled[f"midview-worker-{queue}"]["spec"]["triggers"][0]
         assert trigger["type"] == "redis" and trigger["metadata"]["listName"] == queue
+
+
+# Python versions an Ubuntu base image has in its own archive (apt), by the CUDA image tag's suffix
+UBUNTU_PYTHONS = {"ubuntu22.04": {"3.10", "3.11"}, "ubuntu24.04": {"3.12"}}
+UBUNTU_DEFAULT_PYTHON = {"ubuntu22.04": "3.10", "ubuntu24.04": "3.12"}
+
+
+def test_gpu_dockerfile_installs_what_its_base_ships():
+    """The CUDA image apt-installs a Python its Ubuntu has, pins torch before the project, adds gsplat."""
+    import re
+
+    text = (ROOT / "deploy" / "Dockerfile.gpu").read_text()
+    base = re.search(r"^FROM\s+(\S+)", text, re.M).group(1)
+    ubuntu = next(u for u in UBUNTU_PYTHONS if base.endswith(u))
+    apt = " ".join(line for line in text.splitlines() if "apt-get install" in line or "python3" in line)
+    named = set(re.findall(r"\bpython(3\.\d+)(?:-dev|-venv)?\b", apt))
+    wanted = named or {UBUNTU_DEFAULT_PYTHON[ubuntu]}  # plain python3: the release's own
+    assert wanted <= UBUNTU_PYTHONS[ubuntu], f"{base} has no Python {wanted} in its archive"
+    pip = [line for line in text.splitlines() if "pip install" in line]
+    torch = next(i for i, line in enumerate(pip) if "torch==2.14.1" in line and "torchvision==0.29.1" in line)
+    gsplat = next(i for i, line in enumerate(pip) if re.search(r"pip install .*\bgsplat\b", line))
+    project = next(i for i, line in enumerate(pip) if re.search(r'pip install "?\.', line))
+    assert torch < gsplat < project
+    compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    assert compose["services"]["worker-gpu"]["build"]["dockerfile"] == "deploy/Dockerfile.gpu"
