@@ -336,12 +336,12 @@ def wait_job(client: Any, job_id: str, timeout: float) -> dict[str, Any]:
         time.sleep(0.5)
 
 
-def bench_workers(stack: Stack, base: str, headers: dict[str, str], tenant_id: str) -> dict[str, Any]:
+def bench_workers(stack: Stack, base: str, headers: dict[str, str]) -> dict[str, Any]:
+    import json
+
     import httpx
 
     from services import synth
-    from shared.storage import get_storage
-    from workers.jobsync import cameras_key
 
     scene = synth.main(synth.confs["tiny"], stack.tmp / "tiny", seed=0)
     out: dict[str, Any] = {}
@@ -353,13 +353,13 @@ def bench_workers(stack: Stack, base: str, headers: dict[str, str], tenant_id: s
             files = [("files", (p.name, p.read_bytes(), "image/jpeg"))
                      for p in sorted((scene / "images" / image_set).iterdir())]  # fmt: skip
             c.post(f"/projects/{pid}/images?set={image_set}", files=files).raise_for_status()
-        c.post(f"/projects/{pid}/pos", files={"file": ("pos.csv", (scene / "pos.csv").read_bytes())})
-        from shared.config import Settings
-
-        storage = get_storage(
-            Settings(**{k[8:].lower(): v for k, v in stack.env.items() if k[:8] == "MIDVIEW_"})
-        )
-        storage.put_bytes(cameras_key(tenant_id, pid), (scene / "cameras.json").read_bytes())
+        r = c.post(f"/projects/{pid}/pos", files={"file": ("pos.csv", (scene / "pos.csv").read_bytes())})
+        if r.status_code != 200:
+            raise RuntimeError(f"POS upload refused ({r.status_code}): {r.text}")
+        # the synthetic images carry no EXIF: their intrinsics go through the API
+        r = c.put(f"/projects/{pid}/cameras", json=json.loads((scene / "cameras.json").read_text()))
+        if r.status_code != 200:
+            raise RuntimeError(f"cameras upload refused ({r.status_code}): {r.text}")
 
         # a fresh job per setting (a rerun is answered from the worker's local cache and matches nothing)
         for workers in (1, 2):
@@ -443,7 +443,7 @@ def main() -> None:
         else:
             try:
                 with console.status("tiny job through Celery workers (minutes)"):
-                    w = bench_workers(stack, base, headers, tenant_id)
+                    w = bench_workers(stack, base, headers)
                 for n in (1, 2):
                     rows.append((
                         f"match_views, {n} worker process{'es' if n > 1 else ''}",
