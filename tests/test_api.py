@@ -95,6 +95,25 @@ def test_readyz_is_503_when_the_storage_is_unreachable(tmp_path: Path) -> None:
     assert checks["database"] == "ok" and checks["storage"] != "ok"
 
 
+def test_readyz_checks_the_broker_with_the_celery_dispatcher(tmp_path: Path, redis_url: str) -> None:
+    """dispatcher=celery adds a broker check: ok against the test Redis, 503 when nothing listens."""
+    common = dict(data_dir=tmp_path, storage="local", dispatcher="celery", readyz_timeout_s=2.0)
+    settings = ApiSettings(broker_url=redis_url, **common)
+    upgrade_database(settings.database_url)
+    with TestClient(create_app(settings)) as c:
+        r = c.get("/readyz")
+    assert r.status_code == 200, r.text
+    assert r.json()["checks"] == {"database": "ok", "storage": "ok", "broker": "ok"}
+    dead = ApiSettings(broker_url="redis://127.0.0.1:1/0", **common)
+    t0 = time.monotonic()
+    with TestClient(create_app(dead)) as c:
+        r = c.get("/readyz")
+    assert r.status_code == 503 and time.monotonic() - t0 < 10
+    checks = r.json()["detail"]["checks"]
+    assert checks["database"] == checks["storage"] == "ok"
+    assert checks["broker"] != "ok" and "Connection" in checks["broker"], checks
+
+
 def test_requests_are_logged(api_env, caplog: pytest.LogCaptureFixture) -> None:
     t = api_env.tenant()
     with caplog.at_level(logging.INFO, logger="midview.api.access"):

@@ -30,6 +30,35 @@ def _check_storage(request: Request) -> None:
     request.app.state.storage.list(PROBE_PREFIX)  # S3: fails on a missing bucket or bad credentials
 
 
+def _check_broker(request: Request) -> None:
+    """The Celery broker answers: a Redis PING (redis://, rediss://), else a kombu connection."""
+    settings = request.app.state.settings
+    url, timeout_s = settings.broker_url, settings.readyz_timeout_s
+    if url.split(":", 1)[0] in ("redis", "rediss"):
+        import redis
+
+        client = redis.Redis.from_url(
+            url, socket_connect_timeout=timeout_s, socket_timeout=timeout_s, retry=None
+        )
+        try:
+            client.ping()
+        finally:
+            client.close()
+        return
+    from kombu import Connection
+
+    with Connection(url, connect_timeout=timeout_s) as conn:
+        conn.ensure_connection(max_retries=1)
+
+
+def _checks(request: Request) -> dict[str, Callable[[Request], None]]:
+    """What readiness needs: the database, the storage, and the broker when jobs go through Celery."""
+    checks = {"database": _check_db, "storage": _check_storage}
+    if request.app.state.settings.dispatcher == "celery":
+        checks["broker"] = _check_broker
+    return checks
+
+
 async def _probe(check: Callable[[Request], None], request: Request, timeout_s: float) -> str:
     """The string "ok", or why the check failed or did not finish in time (its thread is abandoned)."""
     try:
@@ -44,15 +73,12 @@ async def _probe(check: Callable[[Request], None], request: Request, timeout_s: 
 
 @router.get(
     "/readyz",
-    summary="Readiness: the database and the object storage are reachable",
+    summary="Readiness: the database, the object storage and (Celery dispatcher) the broker are reachable",
     responses={503: {"description": "A dependency is unreachable"}},
 )
 async def readyz(request: Request) -> JSONResponse:
     timeout_s = request.app.state.settings.readyz_timeout_s
-    checks = {
-        "database": await _probe(_check_db, request, timeout_s),
-        "storage": await _probe(_check_storage, request, timeout_s),
-    }
+    checks = {name: await _probe(check, request, timeout_s) for name, check in _checks(request).items()}
     ready = all(v == "ok" for v in checks.values())
     if not ready:
         log.warning("not ready: %s", checks)
