@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import re
 import unicodedata
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -31,6 +32,7 @@ CONTENT_TYPES = {
 }
 MAX_FILENAME_BYTES = 255
 CHUNK = 1024 * 1024
+SHA256_RE = re.compile(r"^[0-9a-fA-F]{64}$")
 
 
 def sanitize_filename(raw: str) -> str:
@@ -64,6 +66,38 @@ def check_image_name(name: str) -> tuple[str, str]:
     if clean != filename:
         raise ValueError(f"image name {name!r}: the file part must be a plain file name")
     return image_set, clean
+
+
+def declared_sha256(values: list[str], filenames: list[str]) -> tuple[dict[str, str], list[str]]:
+    """The client's SHA-256 per file from `sha256` form fields: ({file name: lower-case digest}, errors).
+
+    Each value is `FILENAME:HEX` (FILENAME as sent or as sanitised; the digest is after the last colon),
+    or a bare `HEX` when the request holds exactly one file. A malformed digest, a name that is no file
+    of the request, or a file given two digests is an error."""
+    out: dict[str, str] = {}
+    errors: list[str] = []
+    for value in values:
+        raw_name, sep, digest = value.strip().rpartition(":")
+        where = f"sha256 field {value[:100]!r}"
+        if not sep and len(filenames) == 1:
+            raw_name = filenames[0]
+        elif not sep:
+            errors.append(f"{where}: expected FILENAME:HEX (the request holds several files)")
+            continue
+        if not SHA256_RE.match(digest):
+            errors.append(f"{where}: not a hex SHA-256 (64 hex digits)")
+            continue
+        try:
+            name = sanitize_filename(raw_name)
+        except ValueError:
+            name = raw_name
+        if name not in filenames:
+            errors.append(f"{where}: {raw_name!r} is no file of this request")
+        elif name in out:
+            errors.append(f"{where}: {name} has two digests")
+        else:
+            out[name] = digest.lower()
+    return out, errors
 
 
 def decode_check(path: Path, filename: str) -> tuple[int, int]:

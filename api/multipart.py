@@ -14,6 +14,7 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import Request
 
 MAX_FIELD_BYTES = 64 * 1024
+EXTRA_FIELDS = 64  # text fields allowed beyond one per file (max_files)
 
 
 class MultipartError(ValueError):
@@ -59,7 +60,9 @@ class _Receiver:
     def __init__(self, folder: Path, max_file_bytes: int, max_files: int) -> None:
         self.folder, self.max_file_bytes, self.max_files = folder, max_file_bytes, max_files
         self.files: list[ReceivedFile] = []
-        self.fields: dict[str, str] = {}
+        self.fields: dict[str, list[str]] = {}
+        self.max_fields = max_files + EXTRA_FIELDS
+        self._field_count = 0
         self._headers: dict[bytes, bytes] = {}
         self._hname = self._hvalue = b""
         self._file: ReceivedFile | None = None
@@ -82,6 +85,9 @@ class _Receiver:
         _, options = parse_options_header(self._headers.get(b"content-disposition", b""))
         name = _decode(options.get(b"name", b""))
         if b"filename" not in options:
+            self._field_count += 1
+            if self._field_count > self.max_fields:
+                raise MultipartError(f"too many form fields in one request (at most {self.max_fields})", 413)
             self._field = (name, bytearray())
             return
         if len(self.files) >= self.max_files:
@@ -119,7 +125,7 @@ class _Receiver:
             self._file._file.close()
             self._file.sha256 = self._file._hash.hexdigest()
         elif self._field is not None:
-            self.fields[self._field[0]] = _decode(bytes(self._field[1]))
+            self.fields.setdefault(self._field[0], []).append(_decode(bytes(self._field[1])))
         self._file = self._field = None
 
     def close(self) -> None:
@@ -130,8 +136,9 @@ class _Receiver:
 
 async def receive_files(
     request: Request, folder: Path, *, max_file_bytes: int, max_files: int
-) -> tuple[list[ReceivedFile], dict[str, str]]:
-    """Read a multipart request body: (file parts written under folder, other form fields).
+) -> tuple[list[ReceivedFile], dict[str, list[str]]]:
+    """Read a multipart request body: (file parts written under folder, other form fields: every value
+    of each, in order, since a field may repeat).
 
     Raises MultipartError (FileTooLarge when a file passes max_file_bytes; reading stops there)."""
     ctype, params = parse_options_header(request.headers.get("content-type"))

@@ -378,6 +378,61 @@ def test_bad_uploads_store_nothing(api_env, make_jpeg, monkeypatch: pytest.Monke
     assert snapshot(api_env, t, pid)["aerial/A1.jpg"] == before["aerial/A1.jpg"]
 
 
+def test_upload_checks_the_declared_sha256(api_env, make_jpeg) -> None:
+    """`sha256` form fields (FILENAME:HEX, or a bare HEX for one file) are checked against the bytes
+    received; any mismatch or malformed field rejects the whole request with a reason, storing nothing."""
+    c, t = api_env.client, api_env.tenant()
+    pid = new_project(api_env, t)
+    a, b = make_jpeg(seed=11), make_jpeg(seed=12)
+    sha_a, sha_b = hashlib.sha256(a).hexdigest(), hashlib.sha256(b).hexdigest()
+
+    def post(files: dict[str, bytes], sha256: list[str]):
+        parts = [("files", (name, data, "image/jpeg")) for name, data in files.items()]
+        return c.post(
+            f"/projects/{pid}/images",
+            params={"set": "aerial"},
+            files=parts,
+            data={"sha256": sha256},
+            headers=t.headers,
+        )
+
+    def refused(files: dict[str, bytes], sha256: list[str], *needles: str) -> None:
+        before = snapshot(api_env, t, pid)
+        r = post(files, sha256)
+        assert r.status_code == 422, r.text
+        detail = r.json()["detail"]
+        assert "nothing was stored" in detail["message"]
+        text = " ".join(detail["errors"])
+        for needle in needles:
+            assert needle in text, (needle, text)
+        assert snapshot(api_env, t, pid) == before
+        for name in files:
+            assert not api_env.storage.exists(image_key_for_name(t.id, pid, f"aerial/{name}"))
+
+    # one wrong digest in the batch: the good file is not stored either
+    refused({"A.jpg": a, "B.jpg": b}, [f"A.jpg:{sha_a}", f"B.jpg:{sha_a}"], "B.jpg", "does not match", sha_a)
+    refused({"A.jpg": a}, [sha_b], "A.jpg", "does not match")  # a bare digest: the one file's
+    refused({"A.jpg": a, "B.jpg": b}, [sha_a], "expected FILENAME:HEX")  # bare digest, two files
+    refused({"A.jpg": a}, ["A.jpg:xyz"], "not a hex SHA-256")
+    refused({"A.jpg": a}, [f"Z.jpg:{sha_a}"], "'Z.jpg' is no file of this request")
+    refused({"A.jpg": a}, [f"A.jpg:{sha_a}", f"A.jpg:{sha_a}"], "two digests")
+
+    # matching digests (upper case, a path as sent, a bare one for a single file): stored
+    r = post({"A.jpg": a, "B.jpg": b}, [f"A.jpg:{sha_a.upper()}", f"C:\\photos\\B.jpg:{sha_b}"])
+    assert r.status_code == 201, r.text
+    assert {i["name"]: i["sha256"] for i in r.json()["images"]} == {
+        "aerial/A.jpg": sha_a,
+        "aerial/B.jpg": sha_b,
+    }
+    d = make_jpeg(seed=13)
+    r = post({"D.jpg": d}, [hashlib.sha256(d).hexdigest()])
+    assert r.status_code == 201, r.text
+    assert api_env.storage.get_bytes(image_key_for_name(t.id, pid, "aerial/D.jpg")) == d
+    spec = c.get("/openapi.json").json()["paths"]["/projects/{project_id}/images"]["post"]
+    assert "sha256" in spec["description"]
+    assert "sha256" in spec["requestBody"]["content"]["multipart/form-data"]["schema"]["properties"]
+
+
 # POS
 def test_pos_upload_validation_and_listing(api_env, make_jpeg) -> None:
     c, t = api_env.client, api_env.tenant()

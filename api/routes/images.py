@@ -14,7 +14,15 @@ from starlette.concurrency import run_in_threadpool
 from api import upload_state
 from api.deps import ProjectDep, SessionDep, SettingsDep, StorageDep
 from api.downloads import stream_object
-from api.ingest import CONTENT_TYPES, CheckedImage, decode_check, image_name, sanitize_filename, store_images
+from api.ingest import (
+    CONTENT_TYPES,
+    CheckedImage,
+    declared_sha256,
+    decode_check,
+    image_name,
+    sanitize_filename,
+    store_images,
+)
 from api.multipart import MultipartError, ReceivedFile, receive_files
 from api.schemas import ImageOut, ImageSet, ImageUploadResult, UploadedImage
 from shared.db import crud
@@ -26,6 +34,7 @@ from shared.storage import Storage
 router = APIRouter(prefix="/projects/{project_id}/images", tags=["images"])
 log = logging.getLogger("midview.api")
 
+SHA256_FIELD = "sha256"
 UPLOAD_BODY = {
     "requestBody": {
         "required": True,
@@ -34,7 +43,13 @@ UPLOAD_BODY = {
                 "schema": {
                     "type": "object",
                     "properties": {
-                        "files": {"type": "array", "items": {"type": "string", "format": "binary"}}
+                        "files": {"type": "array", "items": {"type": "string", "format": "binary"}},
+                        SHA256_FIELD: {
+                            "type": "array",
+                            "items": {"type": "string", "pattern": "^(.+:)?[0-9a-fA-F]{64}$"},
+                            "description": "Optional, one per file to check: FILENAME:HEX, the SHA-256 of "
+                            "the file's bytes (a bare HEX when the request holds one file)",
+                        },
                     },
                     "required": ["files"],
                 }
@@ -50,10 +65,9 @@ def _rejected(errors: list[str], what: str = "rejected") -> HTTPException:
     return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, {"message": message, "errors": errors})
 
 
-def _check_files(files: list[ReceivedFile], image_set: str) -> list[CheckedImage]:
-    """Names and decode checks of every received file; 422 listing every bad one."""
-    errors: list[str] = []
-    out: list[CheckedImage] = []
+def _named(files: list[ReceivedFile], errors: list[str]) -> list[tuple[ReceivedFile, str]]:
+    """(file, sanitised file name) of every received file whose name is acceptable and not repeated."""
+    out: list[tuple[ReceivedFile, str]] = []
     seen: set[str] = set()
     for rf in files:
         try:
@@ -65,6 +79,24 @@ def _check_files(files: list[ReceivedFile], image_set: str) -> list[CheckedImage
             errors.append(f"{filename}: given twice in this request")
             continue
         seen.add(filename)
+        out.append((rf, filename))
+    return out
+
+
+def _check_files(files: list[ReceivedFile], image_set: str, sha256_fields: list[str]) -> list[CheckedImage]:
+    """Names, declared SHA-256 and decode checks of every received file; 422 listing every bad one."""
+    errors: list[str] = []
+    named = _named(files, errors)
+    declared, sha_errors = declared_sha256(sha256_fields, [filename for _, filename in named])
+    errors += sha_errors
+    out: list[CheckedImage] = []
+    for rf, filename in named:
+        want = declared.get(filename)
+        if want is not None and rf.sha256 != want:
+            errors.append(
+                f"{filename}: sha256 {rf.sha256} of the received bytes does not match the declared {want}"
+            )
+            continue
         try:
             width, height = decode_check(rf.path, filename)
         except ImageError as e:
@@ -98,7 +130,10 @@ def _busy_names(storage: Storage, project: Project, names: set[str]) -> None:
         200: {"description": "Every file was already stored with the same bytes"},
         409: {"description": "A name is taken by different bytes; nothing was stored"},
         413: {"description": "A file exceeds max_upload_bytes; nothing was stored"},
-        422: {"description": "A file is not a decodable image; nothing was stored"},
+        422: {
+            "description": "A file is not a decodable image, or its bytes do not match its declared "
+            "sha256; nothing was stored"
+        },
     },
 )
 async def upload_images(
@@ -112,10 +147,17 @@ async def upload_images(
 ) -> ImageUploadResult:
     """Upload one or many images (multipart form, any field name) into a set. All-or-nothing: if any file
     is too large, undecodable, truncated, badly named or conflicts with a stored image, nothing is stored.
-    The same bytes again under the same name are accepted as they are (`created: false`)."""
+    The same bytes again under the same name are accepted as they are (`created: false`).
+
+    Integrity: for each file to check, add a text field `sha256` = `FILENAME:HEX` (the file name as sent,
+    the SHA-256 of its bytes in hex; the field repeats, one per file; a bare `HEX` is enough when the
+    request holds one file). The API hashes the bytes as they stream in: a file whose digest differs,
+    a malformed digest or one naming no file of the request rejects the whole request (422, one reason
+    per file) and nothing is stored. Files without a `sha256` field are not checked this way.
+    E.g. `curl -F files=@A1.jpg -F sha256=A1.jpg:$(sha256sum A1.jpg | cut -c1-64) ...`."""
     with tempfile.TemporaryDirectory(prefix="midview-upload-", dir=settings.upload_tmp_dir) as tmp:
         try:
-            files, _ = await receive_files(
+            files, fields = await receive_files(
                 request,
                 Path(tmp),
                 max_file_bytes=settings.max_upload_bytes,
@@ -126,7 +168,7 @@ async def upload_images(
             raise HTTPException(e.status, f"{e}{suffix}") from None
         if not files:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "no file in the request")
-        checked = await run_in_threadpool(_check_files, files, image_set)
+        checked = await run_in_threadpool(_check_files, files, image_set, fields.get(SHA256_FIELD, []))
         await run_in_threadpool(_busy_names, storage, project, {c.name for c in checked})
         try:
             results = await run_in_threadpool(store_images, session, storage, project, checked)
