@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -14,14 +15,55 @@ app = typer.Typer(
 )
 
 
+def train_conf(
+    preset: dict[str, Any],
+    steps: int | None = None,
+    options: dict[str, Any] | None = None,
+    sets: list[str] | None = None,
+) -> dict[str, Any]:
+    """The training conf of `midview splat train`: `preset`, its schedule scaled to `steps`
+    (services.splat.rescale_schedule), then `options` (dotted key -> value; None: not given), then the
+    `--set key=value` strings. Explicit step numbers are taken as given, not scaled. Raises ValueError
+    for an unknown key or a value of the wrong kind."""
+    from services.splat import parse_overrides, rescale_schedule
+    from services.splat.train import _merge
+
+    c = rescale_schedule(preset, steps if steps is not None else preset["steps"])
+    given = [f"{k}={json.dumps(v)}" for k, v in (options or {}).items() if v is not None]
+    for items in (given, list(sets or [])):
+        c = _merge(c, parse_overrides(items, c))
+    if c["steps"] < 1:
+        raise ValueError("steps must be >= 1")
+    return c
+
+
 @app.command("train")
 def train(
     sparse: Path = typer.Argument(..., help="COLMAP model folder (cameras, images, points3D)"),
     images: Path = typer.Argument(..., help="image folder (names as in the model, e.g. aerial/A0001.jpg)"),
     out: Path = typer.Argument(..., help="output folder: point_cloud.ply, metrics.json, ckpts/, ..."),
     conf: str = typer.Option("auto", help="preset: fast (CPU, minutes), default (3DGS, 30k steps), auto"),
-    steps: int | None = typer.Option(None, help="training steps (default: the preset's)"),
+    steps: int | None = typer.Option(
+        None, help="training steps (default: the preset's); the preset's schedule is scaled to them"
+    ),
     max_width: int | None = typer.Option(None, help="downsample images to at most this width"),
+    lr_means: float | None = typer.Option(
+        None, help="initial learning rate of the means, times the scene extent (decays to lr.means_final)"
+    ),
+    lr_scales: float | None = typer.Option(
+        None, "--lr-scales", "--lr-scale", help="learning rate of the log scales"
+    ),
+    refine_start: int | None = typer.Option(None, help="densify from this step (strategy.refine_start_iter)"),
+    refine_stop: int | None = typer.Option(None, help="densify until this step (strategy.refine_stop_iter)"),
+    refine_every: int | None = typer.Option(None, help="densify every this many steps"),
+    reset_every: int | None = typer.Option(None, help="reset the opacities every this many steps"),
+    sets: list[str] = typer.Option(
+        [],
+        "--set",
+        metavar="KEY=VALUE",
+        help="any conf entry, key=value with dotted keys, e.g. --set strategy.grow_grad2d=0.0004 "
+        "--set lr.opacities=0.025 (applied last; see OUT/conf.json for the keys)",
+    ),
     backend: str = typer.Option("auto", help="auto, cpu or cuda (auto: cuda when available)"),
     resume: bool = typer.Option(False, "--resume", help="continue from the latest checkpoint in OUT"),
     prefix: str = typer.Option("", help="only images whose names start with this, e.g. aerial/"),
@@ -30,7 +72,6 @@ def train(
     """Train Gaussians on the registered images of SPARSE; every 8th image (by name) is held out and its
     PSNR / SSIM written to OUT/metrics.json."""
     from services.splat import confs, main, resolve_backend
-    from services.splat.train import _merge
 
     try:
         be = resolve_backend(backend)
@@ -44,17 +85,21 @@ def train(
     if not sparse.is_dir() or not images.is_dir():
         typer.secho(f"{sparse if not sparse.is_dir() else images} is not a folder", fg="red", err=True)
         raise typer.Exit(2)
-    c = confs[name]
-    over = {k: v for k, v in (("steps", steps), ("max_width", max_width)) if v is not None}
-    if steps is not None and steps < c["steps"]:  # keep the schedule's proportions on shorter runs
-        f = steps / c["steps"]
-        s = c["strategy"]
-        over["strategy"] = {
-            "refine_start_iter": int(s["refine_start_iter"] * f),
-            "refine_stop_iter": int(s["refine_stop_iter"] * f),
-        }
-        over["sh_degree_interval"] = max(1, int(c["sh_degree_interval"] * f))
-    main(_merge(c, over), sparse, images, out, backend=be, resume=resume, prefix=prefix, progress=progress)
+    options = {
+        "max_width": max_width,
+        "lr.means": lr_means,
+        "lr.scales": lr_scales,
+        "strategy.refine_start_iter": refine_start,
+        "strategy.refine_stop_iter": refine_stop,
+        "strategy.refine_every": refine_every,
+        "strategy.reset_every": reset_every,
+    }
+    try:
+        c = train_conf(confs[name], steps, options, sets)
+    except ValueError as e:
+        typer.secho(str(e), fg="red", err=True)
+        raise typer.Exit(2) from e
+    main(c, sparse, images, out, backend=be, resume=resume, prefix=prefix, progress=progress)
     m = json.loads((out / "metrics.json").read_text())
     t = m["test"]
     typer.echo(

@@ -181,27 +181,18 @@ class Job:
         return _merge(base, _merge({"mapping": {"seed": self.options.seed}}, self.settings["sfm"]))
 
     def splat_conf(self) -> dict:
-        from services.splat import confs, resolve_backend
+        from services.splat import confs, rescale_schedule, resolve_backend
 
         be = resolve_backend(self.settings["splat_backend"])
-        c = confs["default" if be == "cuda" else "fast"]
         steps = int(self.options.splat_steps)
+        # the preset's schedule scaled to `steps` (as `midview splat train --steps` does)
+        c = rescale_schedule(confs["default" if be == "cuda" else "fast"], steps)
         over: dict[str, Any] = {
-            "steps": steps,
             "max_width": int(self.options.splat_max_width),
             "seed": int(self.options.seed),
             "save_test_renders": False,
+            "ckpt_every": max(1, steps // 10),
         }
-        if steps != c["steps"]:  # keep the schedule's proportions (as `midview splat train` does)
-            f = steps / c["steps"]
-            s = c["strategy"]
-            over["strategy"] = {
-                "refine_start_iter": max(1, int(s["refine_start_iter"] * f)),
-                "refine_stop_iter": max(2, int(s["refine_stop_iter"] * f)),
-                "reset_every": max(1, int(s["reset_every"] * f)),
-            }
-            over["sh_degree_interval"] = max(1, int(c["sh_degree_interval"] * f))
-        over["ckpt_every"] = max(1, steps // 10)
         return _merge(_merge(c, over), self.settings["splat"])
 
     def viewpoint_conf(self) -> dict:

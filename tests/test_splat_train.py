@@ -167,10 +167,16 @@ def test_main_and_cli(tiny, tmp_path):
     runner = CliRunner()
     args = ["train", str(tmp_path / "sparse"), str(tmp_path / "images"), str(tmp_path / "out")]
     res = runner.invoke(
-        app, [*args, "--steps", "30", "--backend", "cpu", "--no-progress", "--prefix", "aerial/"]
-    )
+        app,
+        [*args, "--steps", "30", "--backend", "cpu", "--no-progress", "--prefix", "aerial/",
+         "--refine-every", "7", "--lr-scale", "0.004", "--set", "lr.opacities=0.04"],
+    )  # fmt: skip
     assert res.exit_code == 0, res.output
     out = tmp_path / "out"
+    used = json.loads((out / "conf.json").read_text())
+    assert used["steps"] == 30 and used["strategy"]["refine_every"] == 7
+    assert used["strategy"]["refine_stop_iter"] == 15  # the fast preset's 1000 of 2000 steps, scaled
+    assert used["lr"]["scales"] == 0.004 and used["lr"]["opacities"] == 0.04
     m = json.loads((out / "metrics.json").read_text())
     assert m["steps"] == 30 and m["n_test"] == 2 and m["n_train"] == 7  # every 8th image held out
     assert m["test"]["psnr"] > 15 and set(m["test"]["views"]) == {"aerial/A0000.png", "aerial/A0008.png"}
@@ -192,3 +198,108 @@ def test_main_and_cli(tiny, tmp_path):
     )  # fmt: skip
     assert res.exit_code == 0, res.output
     assert len(list((tmp_path / "r2" / "aerial").glob("*.png"))) == 9
+
+
+# ---- the training schedule: --steps rescaling and the options of `midview splat train`
+@pytest.mark.parametrize("steps", [500, 2000, 4000])
+def test_rescale_schedule_both_ways(steps):
+    from services.splat import rescale_schedule
+
+    fast = confs["fast"]
+    c = rescale_schedule(fast, steps)
+    f = steps / fast["steps"]
+    s, s0 = c["strategy"], fast["strategy"]
+    assert c["steps"] == steps
+    assert s["refine_start_iter"] == int(s0["refine_start_iter"] * f)
+    assert s["refine_stop_iter"] == int(s0["refine_stop_iter"] * f)
+    assert s["reset_every"] == int(s0["reset_every"] * f)
+    assert c["sh_degree_interval"] == int(fast["sh_degree_interval"] * f)
+    # kept: the averaging window, the budget, the learning rates, disabled (0) entries
+    assert s["refine_every"] == s0["refine_every"] and s["max_gaussians"] == s0["max_gaussians"]
+    assert c["lr"] == fast["lr"] and s["refine_scale2d_stop_iter"] == 0
+    assert fast["steps"] == 2000 and fast["strategy"]["refine_stop_iter"] == 1000  # the preset untouched
+    if steps == fast["steps"]:
+        assert c == _merge(fast, {})
+
+
+def test_rescale_schedule_floors_and_errors():
+    from services.splat import rescale_schedule
+
+    c = rescale_schedule(confs["default"], 3)
+    s = c["strategy"]
+    assert (s["refine_start_iter"], s["refine_stop_iter"], s["reset_every"]) == (1, 2, 1)
+    assert c["sh_degree_interval"] == 1
+    with pytest.raises(ValueError):
+        rescale_schedule(confs["fast"], 0)
+
+
+def test_pipeline_uses_the_same_rescaling(tmp_path):
+    from services.pipeline import Job
+    from services.splat import rescale_schedule
+    from shared.job_options import JobOptions
+
+    for steps in (1000, 2000, 7000):
+        job = Job(tmp_path, {}, JobOptions(splat_steps=steps, splat_max_width=320), {"splat_backend": "cpu"})
+        c = job.splat_conf()
+        want = rescale_schedule(confs["fast"], steps)
+        assert c["steps"] == steps and c["strategy"] == want["strategy"]
+        assert c["sh_degree_interval"] == want["sh_degree_interval"]
+        assert c["ckpt_every"] == steps // 10
+
+
+def test_train_conf_options_and_sets():
+    from cli.splat import train_conf
+
+    c = train_conf(
+        confs["fast"],
+        4000,
+        {"lr.means": 3e-4, "strategy.refine_stop_iter": 1500, "max_width": None, "lr.scales": 0.01},
+        ["strategy.refine_every=50", "strategy.grow_grad2d=4e-4", "sh_degree=2", "background=[1,1,1]"],
+    )
+    s = c["strategy"]
+    assert c["steps"] == 4000 and c["max_width"] == confs["fast"]["max_width"]
+    assert s["refine_start_iter"] == 400 and s["reset_every"] == 6000  # rescaled
+    assert s["refine_stop_iter"] == 1500  # given explicitly: taken as it is
+    assert s["refine_every"] == 50 and isinstance(s["refine_every"], int)
+    assert s["grow_grad2d"] == 4e-4 and c["sh_degree"] == 2 and c["background"] == [1, 1, 1]
+    assert c["lr"]["means"] == 3e-4 and c["lr"]["scales"] == 0.01
+    assert c["lr"]["quats"] == confs["fast"]["lr"]["quats"]
+    # --set comes last: it wins over the named options
+    c = train_conf(confs["fast"], None, {"strategy.refine_every": 70}, ["strategy.refine_every=80"])
+    assert c["strategy"]["refine_every"] == 80 and c["steps"] == confs["fast"]["steps"]
+    assert train_conf(confs["fast"], None, {}, ["strategy.verbose=true"])["strategy"]["verbose"] is True
+    assert train_conf(confs["fast"], None, {}, ["lr.means=2"])["lr"]["means"] == 2.0
+
+
+@pytest.mark.parametrize(
+    "item, msg",
+    [
+        ("strategy.refine_evry=50", "unknown key 'refine_evry'"),
+        ("nope.x=1", "unknown key 'nope'"),
+        ("strategy.refine_every=1.5", "expected an integer"),
+        ("strategy.refine_every=abc", "expected an integer"),
+        ("lr.means=fast", "expected a number"),
+        ("strategy=3", "is a group"),
+        ("strategy.verbose=1", "expected true or false"),
+        ("background=[1,1]", "list of 3"),
+        ("refine_every", "expected key=value"),
+    ],
+)
+def test_train_conf_rejects(item, msg):
+    from cli.splat import train_conf
+
+    with pytest.raises(ValueError, match=msg.replace("[", r"\[")):
+        train_conf(confs["fast"], None, {}, [item])
+
+
+def test_cli_rejects_a_bad_set(tmp_path):
+    from typer.testing import CliRunner
+
+    from cli.splat import app
+
+    (tmp_path / "sparse").mkdir()
+    (tmp_path / "images").mkdir()
+    args = ["train", str(tmp_path / "sparse"), str(tmp_path / "images"), str(tmp_path / "out")]
+    res = CliRunner().invoke(app, [*args, "--backend", "cpu", "--set", "strategy.refine_evry=5"])
+    assert res.exit_code == 2 and "refine_evry" in res.output
+    assert not (tmp_path / "out").exists()

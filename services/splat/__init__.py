@@ -14,7 +14,7 @@ from .model import create_splats
 from .ply import load_ply, save_ply
 from .render import load_model, look_at, lowered_pose, render
 from .strategy import DefaultStrategy
-from .train import SceneData, Trainer, View, confs, load_scene, main
+from .train import SceneData, Trainer, View, confs, load_scene, main, parse_overrides, rescale_schedule
 
 __all__ = [
     "DefaultStrategy",
@@ -29,8 +29,10 @@ __all__ = [
     "look_at",
     "lowered_pose",
     "main",
+    "parse_overrides",
     "rasterization",
     "render",
+    "rescale_schedule",
     "resolve_backend",
     "save_ply",
 ]

@@ -101,6 +101,101 @@ confs: dict[str, dict[str, Any]] = {
 }
 
 
+# step-based entries of a conf that `rescale_schedule` scales (dotted keys; 0 means "off" and stays 0)
+SCHEDULE_KEYS: dict[str, int] = {  # key -> smallest value once scaled
+    "sh_degree_interval": 1,
+    "strategy.refine_start_iter": 1,
+    "strategy.refine_stop_iter": 2,
+    "strategy.reset_every": 1,
+    "strategy.refine_scale2d_stop_iter": 1,
+    "strategy.pause_refine_after_reset": 1,
+}
+
+
+def rescale_schedule(conf: dict, steps: int) -> dict:
+    """`conf` (completed with the defaults) trained for `steps` steps, its step-based schedule
+    (`SCHEDULE_KEYS`: SH degree interval, densification start / stop, opacity reset) scaled by
+    steps / conf["steps"], up or down, so the run keeps the preset's proportions.
+
+    Kept as they are: `strategy.refine_every` (how many views' gradients each densification averages; a
+    1000-step run refining every 3 steps would decide on noise), `ckpt_every` and the learning rates (the
+    means' decay already follows conf["steps"])."""
+    steps = int(steps)
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    out = _merge(_DEFAULT, conf)
+    f = steps / max(int(out["steps"]), 1)
+    out["steps"] = steps
+    if f == 1.0:
+        return out
+    for key, low in SCHEDULE_KEYS.items():
+        *path, last = key.split(".")
+        d = out
+        for k in path:
+            d = d[k]
+        if d.get(last, 0) > 0:
+            d[last] = max(low, int(d[last] * f))
+    return out
+
+
+def _parse_value(text: str) -> Any:
+    """JSON (numbers, true/false/null, lists, quoted strings), else a Python float or bool word, else the
+    text itself."""
+    try:
+        return json.loads(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    words = {"true": True, "false": False, "none": None}
+    return words.get(text.strip().lower(), text)
+
+
+def parse_overrides(items: list[str], base: dict) -> dict:
+    """`key=value` strings (dotted keys for nested entries: "strategy.refine_every=100",
+    "lr.means=3e-4") -> a nested override of `base` (merge it with `_merge`).
+
+    Keys must exist in `base`; a value must fit the kind of the one it replaces (ints stay ints, a number
+    for a float, a list of the same length for a list, no group replaced by a value). Raises ValueError
+    with the reason."""
+    over: dict = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"{item!r}: expected key=value, e.g. strategy.refine_every=100")
+        *path, last = key.split(".")
+        cur, dst = base, over
+        for i, k in enumerate(path):
+            if not isinstance(cur.get(k), dict):
+                raise ValueError(f"{key}: unknown key {'.'.join(path[: i + 1])!r}")
+            cur, dst = cur[k], dst.setdefault(k, {})
+        if last not in cur:
+            known = ", ".join(sorted(cur))
+            raise ValueError(f"{key}: unknown key {last!r} (known here: {known})")
+        old, value = cur[last], _parse_value(text)
+        if isinstance(old, dict):
+            raise ValueError(f"{key} is a group: set its entries, e.g. {key}.{next(iter(old), 'x')}=...")
+        if isinstance(old, bool):
+            if not isinstance(value, bool):
+                raise ValueError(f"{key}: expected true or false, got {text!r}")
+        elif isinstance(old, int):
+            if isinstance(value, float) and value.is_integer():
+                value = int(value)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ValueError(f"{key}: expected an integer, got {text!r}")
+        elif isinstance(old, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"{key}: expected a number, got {text!r}")
+            value = float(value)
+        elif isinstance(old, list) and not (isinstance(value, list) and len(value) == len(old)):
+            raise ValueError(f"{key}: expected a list of {len(old)} values, e.g. {json.dumps(old)}")
+        dst[last] = value
+    return over
+
+
 @dataclass
 class View:
     """One training or test camera; image (H, W, 3) float in [0, 1] at (width, height)."""
