@@ -1,7 +1,8 @@
 """3DGS rasterizer benchmark: forward + backward per step, CPU backend against the plain-PyTorch reference.
 
     python bench/splat_cpu.py                          # 320x240, 20k Gaussians, 10 steps per backend
-    python bench/splat_cpu.py --n 50000 --width 640 --height 480
+    python bench/splat_cpu.py --check                  # exit 1 when a goal of issue 4 is missed
+    python bench/splat_cpu.py --gaussians 2000 --width 64 --height 48 --iters 2 --ref-steps 1  # smoke run
 
 Each backend runs in its own subprocess (so that its peak resident memory, ru_maxrss, is its own) on the
 same random scene (services/splat/synthetic.py: Gaussians 2-8 m in front of a 60 degree camera, projected
@@ -10,11 +11,16 @@ rasterization and the backward pass to every 3D parameter, with torch on `--torc
 uses all cores). Timings are medians after a warm-up step; CPU time is user + system of the process, to
 tell time spent from time waited on a shared machine. The ratio is the reference's median over the CPU's,
 measured in the same run.
+
+Goals (issue 4), printed as PASS / FAIL lines: the CPU backend at least `--min-speedup` (5x) faster than
+the reference, and at most `--max-step-ms` (200 ms) per forward + backward step at 320x240 with 20k
+Gaussians on 2 cores; the peak memory of both is reported. With `--check` a missed goal exits 1.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -77,17 +83,38 @@ def worker(backend: str, n: int, width: int, height: int, steps: int, torch_thre
     }
 
 
+GOAL_SIZE = (320, 240, 20_000)  # width, height, Gaussians of the issue's goals
+GOAL_CORES = 2
+
+
+def goals(cpu: dict, ref: dict, min_speedup: float, max_step_ms: float) -> list[tuple[str, bool]]:
+    """(line, passed) for each goal of issue 4, from the two backends' figures."""
+    ratio = ref["step_ms"] / cpu["step_ms"]
+    return [
+        (f"speed-up {ratio:.1f}x >= {min_speedup:g}x (reference / cpu, step time)", ratio >= min_speedup),
+        (
+            f"step {cpu['step_ms']:.1f} ms <= {max_step_ms:g} ms (cpu backend, forward + backward)",
+            cpu["step_ms"] <= max_step_ms,
+        ),
+    ]
+
+
 def bench(
-    n: int = typer.Option(20_000, help="number of Gaussians"),
+    n: int = typer.Option(20_000, "--n", "--gaussians", help="number of Gaussians"),
     width: int = typer.Option(320),
     height: int = typer.Option(240),
-    steps: int = typer.Option(10, help="timed steps per backend (after one warm-up step)"),
+    steps: int = typer.Option(
+        10, "--steps", "--iters", help="timed steps per backend (after a warm-up step)"
+    ),
     ref_steps: int = typer.Option(3, help="timed steps of the (slow) reference"),
     torch_threads: int = typer.Option(
         1, help="torch intra-op threads (1 is fastest on a busy 2-core machine)"
     ),
     seed: int = typer.Option(0),
     out: Path | None = typer.Option(None, help="also write the figures to this JSON file"),
+    min_speedup: float = typer.Option(5.0, help="goal: reference / cpu step time at least this"),
+    max_step_ms: float = typer.Option(200.0, help="goal: cpu forward + backward step at most this (ms)"),
+    check: bool = typer.Option(False, "--check", help="exit 1 when a goal is missed"),
     worker_backend: str | None = typer.Option(None, "--worker", hidden=True),
 ) -> None:
     """Forward + backward per step of the CPU backend and the reference on the same scene."""
@@ -141,8 +168,33 @@ def bench(
         f"mean alpha {cpu['mean_alpha']:.2f}; "
         f"image checksums cpu {cpu['checksum']:.3f} / reference {ref['checksum']:.3f}"
     )
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 0
+    notes = []
+    if (width, height, n) != GOAL_SIZE:
+        notes.append(f"measured at {width}x{height} with {n} Gaussians; the goals are stated at 320x240, 20k")
+    if cores != GOAL_CORES:
+        notes.append(f"measured on {cores} cores; the goals are stated for {GOAL_CORES}")
+    results = goals(cpu, ref, min_speedup, max_step_ms)
+    for line, ok in results:
+        console.print(f"[{'green' if ok else 'red'}]{'PASS' if ok else 'FAIL'}[/] {line}")
+    console.print(
+        f"peak memory (max RSS): cpu {cpu['peak_rss_mb']:.0f} MB "
+        f"(+{cpu['peak_rss_mb'] - cpu['base_rss_mb']:.0f} MB over the scene), "
+        f"reference {ref['peak_rss_mb']:.0f} MB (+{ref['peak_rss_mb'] - ref['base_rss_mb']:.0f} MB)"
+    )
+    for note in notes:
+        console.print(f"note: {note}")
     if out is not None:
-        out.write_text(json.dumps({"rows": rows, "ratio": ref["step_ms"] / cpu["step_ms"]}, indent=1))
+        doc = {
+            "rows": rows,
+            "ratio": ref["step_ms"] / cpu["step_ms"],
+            "cores": cores,
+            "goals": [{"goal": line, "pass": ok} for line, ok in results],
+            "notes": notes,
+        }
+        out.write_text(json.dumps(doc, indent=1))
+    if check and not all(ok for _, ok in results):
+        raise typer.Exit(1)
 
 
 if __name__ == "__main__":
