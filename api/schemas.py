@@ -104,13 +104,33 @@ class PartOut(BaseModel):
     etag: str
 
 
+class ReceivedPart(BaseModel):
+    part_number: int
+    size: int
+    etag: str = Field(description="Give it back in POST .../complete")
+    last_modified: datetime | None = None
+
+
+class UploadParts(BaseModel):
+    id: str
+    part_count: int
+    parts: list[ReceivedPart] = Field(description="Parts the storage holds, from its list of parts")
+    missing: list[int] = Field(description="Part numbers not received yet")
+    wrong_size: list[int] = Field(description="Received with another size than planned: send them again")
+
+
 class CompletedPart(In):
     part_number: int = Field(ge=1, le=10_000)
     etag: str = Field(min_length=1, max_length=200)
 
 
 class UploadComplete(In):
-    parts: list[CompletedPart] = Field(min_length=1, max_length=10_000)
+    parts: list[CompletedPart] | None = Field(
+        None,
+        min_length=1,
+        max_length=10_000,
+        description="The parts and their ETags; omitted: the parts the storage lists for this upload",
+    )
 
 
 # POS

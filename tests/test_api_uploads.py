@@ -7,7 +7,9 @@ import hashlib
 import uuid
 
 import httpx
+import pytest
 
+from shared.storage import StorageKeyError
 from shared.storage.keys import image_key_for_name
 
 MB = 1024 * 1024
@@ -19,26 +21,29 @@ def _project(env, tenant) -> str:
     return r.json()["id"]
 
 
+def _send_part(env, tenant, pid: str, up: dict, data: bytes, n: int) -> str:
+    """PUT part n where GET .../parts/{n} says (presigned storage URL, or the API); its ETag."""
+    r = env.client.get(f"/projects/{pid}/uploads/{up['id']}/parts/{n}", headers=tenant.headers)
+    assert r.status_code == 200, r.text
+    target = r.json()
+    chunk = data[(n - 1) * up["part_size"] : n * up["part_size"]]
+    assert target["size"] == len(chunk) and target["method"] == "PUT"
+    if target["needs_auth"]:  # the API receives the part (local storage)
+        assert target["url"].startswith("http://testserver/projects/")
+        put = env.client.put(target["url"], content=chunk, headers=tenant.headers)
+        assert put.status_code == 200, put.text
+        return put.json()["etag"]
+    put = httpx.put(target["url"], content=chunk, timeout=30)  # straight to the bucket, no credentials
+    assert put.status_code == 200, put.text
+    return put.headers["etag"]
+
+
 def _send_parts(env, tenant, pid: str, up: dict, data: bytes) -> list[dict]:
-    """PUT every part where GET .../parts/{n} says (presigned storage URL, or the API); their ETags."""
-    parts = []
-    for n in range(1, up["part_count"] + 1):
-        r = env.client.get(f"/projects/{pid}/uploads/{up['id']}/parts/{n}", headers=tenant.headers)
-        assert r.status_code == 200, r.text
-        target = r.json()
-        chunk = data[(n - 1) * up["part_size"] : n * up["part_size"]]
-        assert target["size"] == len(chunk) and target["method"] == "PUT"
-        if target["needs_auth"]:  # the API receives the part (local storage)
-            assert target["url"].startswith("http://testserver/projects/")
-            put = env.client.put(target["url"], content=chunk, headers=tenant.headers)
-            assert put.status_code == 200, put.text
-            etag = put.json()["etag"]
-        else:  # straight to the bucket, no credentials
-            put = httpx.put(target["url"], content=chunk, timeout=30)
-            assert put.status_code == 200, put.text
-            etag = put.headers["etag"]
-        parts.append({"part_number": n, "etag": etag})
-    return parts
+    """Every part of the upload; [{part_number, etag}]."""
+    return [
+        {"part_number": n, "etag": _send_part(env, tenant, pid, up, data, n)}
+        for n in range(1, up["part_count"] + 1)
+    ]
 
 
 def test_multipart_upload_registers_the_image(api_env, make_jpeg) -> None:
@@ -144,3 +149,87 @@ def test_multipart_upload_refusals_and_abort(api_env, make_jpeg, monkeypatch) ->
     # deleting the project drops unfinished uploads with everything else
     assert c.delete(f"/projects/{pid}", headers=t.headers).status_code == 204
     assert api_env.storage.list(f"tenants/{t.id}/") == []
+
+
+def test_resume_from_the_listed_parts(api_env, make_jpeg) -> None:
+    """A client that lost its ETags asks for the parts received (number, size, ETag; from the storage's
+    list of parts), sends the missing one, and completes with the listed ETags, or with none at all."""
+    c, t = api_env.client, api_env.tenant()
+    pid = _project(api_env, t)
+    data = make_jpeg(320, 240, seed=8, padding=6 * MB)
+    sha = hashlib.sha256(data).hexdigest()
+    for name, explicit in (("aerial/R1.jpg", True), ("aerial/R2.jpg", False)):
+        body = {"name": name, "size": len(data), "sha256": sha}
+        up = c.post(f"/projects/{pid}/uploads", json=body, headers=t.headers).json()
+        base = f"/projects/{pid}/uploads/{up['id']}"
+        listed = c.get(f"{base}/parts", headers=t.headers).json()
+        assert listed == {"id": up["id"], "part_count": 2, "parts": [], "missing": [1, 2], "wrong_size": []}
+        etag1 = _send_part(api_env, t, pid, up, data, 1)  # part 1 only; then the client goes away
+        r = c.post(f"{base}/complete", json={}, headers=t.headers)
+        assert r.status_code == 422 and "missing [2]" in r.json()["detail"], r.text
+        r = c.get(f"{base}/parts", headers=t.headers)
+        assert r.status_code == 200, r.text
+        got = r.json()
+        assert got["missing"] == [2] and got["wrong_size"] == []
+        assert [(p["part_number"], p["size"], p["etag"].strip('"')) for p in got["parts"]] == [
+            (1, up["part_size"], etag1.strip('"'))
+        ]
+        _send_parts(api_env, t, pid, up, data)  # every part again (idempotent), ETags dropped
+        got = c.get(f"{base}/parts", headers=t.headers).json()
+        assert got["missing"] == [] and [p["size"] for p in got["parts"]] == [
+            up["part_size"],
+            len(data) - up["part_size"],
+        ]
+        parts = [{"part_number": p["part_number"], "etag": p["etag"]} for p in got["parts"]]
+        r = c.post(f"{base}/complete", json={"parts": parts} if explicit else {}, headers=t.headers)
+        assert r.status_code == 201, r.text
+        assert r.json()["sha256"] == sha and r.json()["name"] == name
+        assert api_env.storage.get_bytes(image_key_for_name(t.id, pid, name)) == data
+        assert c.get(f"{base}/parts", headers=t.headers).status_code == 404  # finished
+    other = api_env.tenant()
+    assert c.get(f"/projects/{pid}/uploads/{up['id']}/parts", headers=other.headers).status_code == 404
+
+
+def test_concurrent_starts_of_one_name(api_env, make_jpeg, monkeypatch) -> None:
+    """Two starts of the same name that both pass the "none in progress" check: exactly one wins (201),
+    the other gets 409 and leaves no storage upload behind."""
+    import threading
+
+    c, t = api_env.client, api_env.tenant()
+    pid = _project(api_env, t)
+    storage = api_env.storage
+    both_checked = threading.Barrier(2, timeout=20)
+    created, aborted = [], []
+    real_create, real_abort = storage.create_multipart, storage.abort_multipart
+
+    def create_multipart(key, content_type=None):  # the real call, once both requests got this far
+        both_checked.wait()
+        upload_id = real_create(key, content_type=content_type)
+        created.append(upload_id)
+        return upload_id
+
+    def abort_multipart(key, upload_id):
+        aborted.append(upload_id)
+        return real_abort(key, upload_id)
+
+    monkeypatch.setattr(storage, "create_multipart", create_multipart)
+    monkeypatch.setattr(storage, "abort_multipart", abort_multipart)
+    body = {"name": "aerial/RACE.jpg", "size": 12345}
+    results = []
+
+    def start() -> None:
+        results.append(c.post(f"/projects/{pid}/uploads", json=body, headers=t.headers))
+
+    threads = [threading.Thread(target=start) for _ in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(60)
+    assert sorted(r.status_code for r in results) == [201, 409], [r.text for r in results]
+    loser = next(r for r in results if r.status_code == 409)
+    assert "already in progress" in loser.json()["detail"]
+    winner = next(r for r in results if r.status_code == 201).json()
+    assert [u["id"] for u in c.get(f"/projects/{pid}/uploads", headers=t.headers).json()] == [winner["id"]]
+    assert len(created) == 2 and len(aborted) == 1  # the loser's storage upload was aborted
+    with pytest.raises(StorageKeyError):
+        storage.list_parts(image_key_for_name(t.id, pid, "aerial/RACE.jpg"), aborted[0])

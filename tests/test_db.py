@@ -41,7 +41,7 @@ from shared.db.session import (
 )
 
 REPO = Path(__file__).resolve().parents[1]
-HEAD = "0001"
+HEAD = "0002"
 TABLES = {
     "tenants",
     "api_keys",
@@ -53,6 +53,7 @@ TABLES = {
     "artifacts",
     "webhooks",
     "webhook_deliveries",
+    "uploads",
 }
 SHA_A, SHA_B = "a" * 64, "b" * 64
 

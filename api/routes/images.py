@@ -9,9 +9,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
-from api import upload_state
 from api.deps import ProjectDep, SessionDep, SettingsDep, StorageDep
 from api.downloads import stream_object
 from api.ingest import (
@@ -29,7 +29,6 @@ from shared.db import crud
 from shared.db.crud import ConflictError
 from shared.db.models import Image, Project
 from shared.images import ImageError
-from shared.storage import Storage
 
 router = APIRouter(prefix="/projects/{project_id}/images", tags=["images"])
 log = logging.getLogger("midview.api")
@@ -112,8 +111,8 @@ def _check_files(files: list[ReceivedFile], image_set: str, sha256_fields: list[
     return out
 
 
-def _busy_names(storage: Storage, project: Project, names: set[str]) -> None:
-    busy = upload_state.active_for_names(storage, project.tenant_id, project.id, names)
+def _busy_names(session: Session, project: Project, names: set[str]) -> None:
+    busy = crud.uploads_in_progress(session, project.id, names)
     if busy:
         raise HTTPException(
             status.HTTP_409_CONFLICT,
@@ -169,7 +168,7 @@ async def upload_images(
         if not files:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "no file in the request")
         checked = await run_in_threadpool(_check_files, files, image_set, fields.get(SHA256_FIELD, []))
-        await run_in_threadpool(_busy_names, storage, project, {c.name for c in checked})
+        await run_in_threadpool(_busy_names, session, project, {c.name for c in checked})
         try:
             results = await run_in_threadpool(store_images, session, storage, project, checked)
         except ConflictError as e:

@@ -8,7 +8,6 @@ import logging
 import sqlalchemy as sa
 from fastapi import APIRouter, Response, status
 
-from api import upload_state
 from api.deps import DispatcherDep, ProjectDep, SessionDep, StorageDep, TenantDep
 from api.schemas import ProjectCreate, ProjectDetail, ProjectOut
 from shared.db import crud
@@ -66,6 +65,7 @@ def delete_project(
     unfinished jobs are revoked first."""
     active = [j.id for j in crud.list_jobs(session, project.id) if j.status not in TERMINAL_JOB_STATUSES]
     prefix = project_prefix(project.tenant_id, project.id)
+    uploads = [(u.storage_key, u.storage_upload_id) for u in crud.list_uploads(session, project.id)]
     crud.delete_project(session, project)
     session.commit()
     for job_id in active:
@@ -74,9 +74,9 @@ def delete_project(
         except Exception:
             log.exception("could not revoke job %s of deleted project", job_id)
     try:  # the rows are gone: a storage failure leaves orphan objects, logged, not an error for the client
-        for upload in upload_state.list_uploads(storage, project.tenant_id, project.id):
+        for key, storage_upload_id in uploads:
             with contextlib.suppress(StorageError):
-                storage.abort_multipart(upload.key, upload.storage_upload_id)
+                storage.abort_multipart(key, storage_upload_id)
         deleted = storage.delete_prefix(prefix)
         log.info("project %s deleted with %d stored objects", project.id, deleted)
     except (StorageError, OSError):

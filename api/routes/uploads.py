@@ -1,44 +1,52 @@
 """Resumable multipart uploads of large images.
 
-1. `POST /projects/{p}/uploads` {name, size, sha256?} -> an upload id, the part size and count;
+1. `POST /projects/{p}/uploads` {name, size, sha256?} -> an upload id, the part size and count; at most
+   one upload per image name is in progress (a database row, unique per project and name);
 2. for each part n: `GET .../uploads/{u}/parts/{n}` -> where to PUT it: a presigned storage URL (S3; no
    API key, the response's ETag header is the part's ETag) or the API route
    `PUT .../uploads/{u}/parts/{n}` (local storage; with the API key; returns the ETag);
-   parts can go in parallel and be retried; the client keeps the ETags;
-3. `POST .../uploads/{u}/complete` {parts: [{part_number, etag}]} -> the object is assembled, checked
-   (size, sha256 when given, full decode) and registered as an image; a failing check deletes it (422);
-4. `DELETE .../uploads/{u}` aborts.
+   parts can go in parallel and be retried;
+3. to resume (the client lost its ETags, or which parts arrived): `GET .../uploads/{u}/parts` lists the
+   parts the storage holds (number, size, ETag) and those missing;
+4. `POST .../uploads/{u}/complete` {parts: [{part_number, etag}]} (or {} to take the listed parts) -> the
+   object is assembled, checked (size, sha256 when given, full decode) and registered as an image; a
+   failing check deletes it (422);
+5. `DELETE .../uploads/{u}` aborts.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import tempfile
 from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Request, Response, status
 from fastapi import Path as PathParam
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
-from api import upload_state
 from api.deps import ProjectDep, SessionDep, SettingsDep, StorageDep
 from api.ingest import CONTENT_TYPES, check_image_name, decode_check, hash_stream
 from api.schemas import (
     ImageOut,
     PartOut,
     PartUrl,
+    ReceivedPart,
     UploadComplete,
     UploadCreate,
     UploadedImage,
     UploadOut,
+    UploadParts,
 )
-from api.upload_state import UploadState
 from shared.db import crud
-from shared.db.models import Project, utcnow
+from shared.db.crud import ConflictError
+from shared.db.models import Project, Upload
 from shared.images import ImageError
 from shared.storage import Storage, StorageError, StorageKeyError
+from shared.storage.base import MAX_PART_NUMBER
 from shared.storage.keys import image_key_for_name
 
 router = APIRouter(prefix="/projects/{project_id}/uploads", tags=["uploads"])
@@ -48,33 +56,49 @@ UploadId = Annotated[str, PathParam(description="Upload id")]
 PartNumber = Annotated[int, PathParam(ge=1, le=10_000)]
 
 
-def _load(storage: Storage, project: Project, upload_id: str) -> UploadState:
-    try:
-        return upload_state.load(storage, project.tenant_id, project.id, upload_id)
-    except StorageKeyError:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"upload {upload_id} not found") from None
+def plan_parts(size: int, part_size: int) -> tuple[int, int]:
+    """(part size, part count) for size bytes: part_size, grown when it would need more than 10000 parts."""
+    part_size = max(part_size, math.ceil(size / MAX_PART_NUMBER))
+    return part_size, max(1, math.ceil(size / part_size))
 
 
-def _out(state: UploadState, storage: Storage) -> UploadOut:
-    presigned = storage.presigned_part_url(state.key, state.storage_upload_id, 1) is not None
+def _load(session: Session, project: Project, upload_id: str) -> Upload:
+    upload = crud.get_upload(session, project.id, upload_id)
+    if upload is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"upload {upload_id} not found")
+    return upload
+
+
+def _out(upload: Upload, storage: Storage) -> UploadOut:
+    presigned = storage.presigned_part_url(upload.storage_key, upload.storage_upload_id, 1) is not None
     return UploadOut(
-        id=state.id,
-        name=state.name,
-        size=state.size,
-        sha256=state.sha256,
-        part_size=state.part_size,
-        part_count=state.part_count,
+        id=upload.id,
+        name=upload.name,
+        size=upload.size_bytes,
+        sha256=upload.sha256,
+        part_size=upload.part_size,
+        part_count=upload.part_count,
         parts_via="presigned" if presigned else "api",
-        created_at=state.created_at,
+        created_at=upload.created_at,
     )
 
 
-def _part_size(state: UploadState, n: int) -> int:
-    if not 1 <= n <= state.part_count:
+def _part_size(upload: Upload, n: int) -> int:
+    if not 1 <= n <= upload.part_count:
         raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT, f"part {n} outside 1..{state.part_count} of this upload"
+            status.HTTP_422_UNPROCESSABLE_CONTENT, f"part {n} outside 1..{upload.part_count} of this upload"
         )
-    return state.part_size if n < state.part_count else state.size - state.part_size * (state.part_count - 1)
+    last = upload.size_bytes - upload.part_size * (upload.part_count - 1)
+    return upload.part_size if n < upload.part_count else last
+
+
+def _drop(session: Session, storage: Storage, upload: Upload, abort: bool = True) -> None:
+    """Forget an upload (its row, committed), aborting its storage upload first when asked."""
+    if abort:
+        with contextlib.suppress(StorageError):
+            storage.abort_multipart(upload.storage_key, upload.storage_upload_id)
+    session.delete(upload)
+    session.commit()
 
 
 @router.post(
@@ -89,6 +113,8 @@ def _part_size(state: UploadState, n: int) -> int:
 def create_upload(
     body: UploadCreate, project: ProjectDep, session: SessionDep, storage: StorageDep, settings: SettingsDep
 ) -> UploadOut:
+    """Start an upload. Only one upload of a name can be in progress: two concurrent starts of the same
+    name cannot both succeed (the database's unique constraint decides; the loser gets 409)."""
     try:
         check_image_name(body.name)
     except ValueError as e:
@@ -104,35 +130,78 @@ def create_upload(
             status.HTTP_409_CONFLICT,
             {"message": f"image {body.name!r} already exists", "sha256": existing.sha256},
         )
-    if upload_state.active_for_names(storage, project.tenant_id, project.id, {body.name}):
-        raise HTTPException(status.HTTP_409_CONFLICT, f"an upload of {body.name!r} is already in progress")
+    busy = f"an upload of {body.name!r} is already in progress"
+    if crud.uploads_in_progress(session, project.id, [body.name]):
+        raise HTTPException(status.HTTP_409_CONFLICT, busy)
     key = image_key_for_name(project.tenant_id, project.id, body.name)
-    part_size, part_count = upload_state.plan_parts(body.size, settings.upload_part_size)
+    part_size, part_count = plan_parts(body.size, settings.upload_part_size)
     content_type = CONTENT_TYPES.get(Path(body.name).suffix.lower())
-    state = UploadState(
-        id=upload_state.new_upload_id(),
-        name=body.name,
-        key=key,
-        storage_upload_id=storage.create_multipart(key, content_type=content_type),
-        size=body.size,
-        sha256=body.sha256.lower() if body.sha256 else None,
-        part_size=part_size,
-        part_count=part_count,
-        created_at=utcnow(),
-    )
-    upload_state.save(storage, project.tenant_id, project.id, state)
-    log.info("project %s: upload %s of %s started (%d parts)", project.id, state.id, body.name, part_count)
-    return _out(state, storage)
+    storage_upload_id = storage.create_multipart(key, content_type=content_type)
+    session.commit()  # end the read transaction: SQLite cannot turn a stale read snapshot into a write
+    try:
+        upload = crud.create_upload(
+            session,
+            project.id,
+            body.name,
+            storage_key=key,
+            storage_upload_id=storage_upload_id,
+            size_bytes=body.size,
+            sha256=body.sha256,
+            part_size=part_size,
+            part_count=part_count,
+        )
+        session.commit()
+    except BaseException as e:
+        session.rollback()
+        with contextlib.suppress(StorageError):
+            storage.abort_multipart(key, storage_upload_id)
+        if isinstance(e, ConflictError):  # a concurrent start of the same name won
+            raise HTTPException(status.HTTP_409_CONFLICT, busy) from None
+        raise
+    log.info("project %s: upload %s of %s started (%d parts)", project.id, upload.id, body.name, part_count)
+    return _out(upload, storage)
 
 
 @router.get("", response_model=list[UploadOut])
-def list_uploads(project: ProjectDep, storage: StorageDep) -> list[UploadOut]:
-    return [_out(s, storage) for s in upload_state.list_uploads(storage, project.tenant_id, project.id)]
+def list_uploads(project: ProjectDep, session: SessionDep, storage: StorageDep) -> list[UploadOut]:
+    return [_out(u, storage) for u in crud.list_uploads(session, project.id)]
 
 
 @router.get("/{upload_id}", response_model=UploadOut)
-def get_upload(project: ProjectDep, storage: StorageDep, upload_id: UploadId) -> UploadOut:
-    return _out(_load(storage, project, upload_id), storage)
+def get_upload(
+    project: ProjectDep, session: SessionDep, storage: StorageDep, upload_id: UploadId
+) -> UploadOut:
+    return _out(_load(session, project, upload_id), storage)
+
+
+def _received(storage: Storage, upload: Upload) -> list[ReceivedPart]:
+    """The parts the storage holds for an upload; 404 when the storage no longer knows it."""
+    try:
+        listed = storage.list_parts(upload.storage_key, upload.storage_upload_id)
+    except StorageKeyError:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND, f"upload {upload.id}: the storage no longer has it; start again"
+        ) from None
+    return [ReceivedPart(part_number=p.part_number, size=p.size, etag=p.etag, last_modified=p.last_modified)
+            for p in listed if 1 <= p.part_number <= upload.part_count]  # fmt: skip
+
+
+@router.get("/{upload_id}/parts", response_model=UploadParts)
+def list_parts(
+    project: ProjectDep, session: SessionDep, storage: StorageDep, upload_id: UploadId
+) -> UploadParts:
+    """The parts received so far (number, size, ETag), read from the storage, and those still to send:
+    a client that lost its ETags or was interrupted resumes from here and completes with these ETags."""
+    upload = _load(session, project, upload_id)
+    parts = _received(storage, upload)
+    have = {p.part_number for p in parts}
+    return UploadParts(
+        id=upload.id,
+        part_count=upload.part_count,
+        parts=parts,
+        missing=[n for n in range(1, upload.part_count + 1) if n not in have],
+        wrong_size=[p.part_number for p in parts if p.size != _part_size(upload, p.part_number)],
+    )
 
 
 @router.get("/{upload_id}/parts/{part_number}", response_model=PartUrl)
@@ -140,14 +209,15 @@ def part_url(
     request: Request,
     project: ProjectDep,
     storage: StorageDep,
+    session: SessionDep,
     settings: SettingsDep,
     upload_id: UploadId,
     part_number: PartNumber,
 ) -> PartUrl:
     """Where to PUT part n: a presigned storage URL when the backend has them, else this API."""
-    state = _load(storage, project, upload_id)
-    size = _part_size(state, part_number)
-    url = storage.presigned_part_url(state.key, state.storage_upload_id, part_number)
+    upload = _load(session, project, upload_id)
+    size = _part_size(upload, part_number)
+    url = storage.presigned_part_url(upload.storage_key, upload.storage_upload_id, part_number)
     if url is not None:
         return PartUrl(
             part_number=part_number,
@@ -173,11 +243,18 @@ def part_url(
     },
 )
 async def upload_part(
-    request: Request, project: ProjectDep, storage: StorageDep, upload_id: UploadId, part_number: PartNumber
+    request: Request,
+    project: ProjectDep,
+    session: SessionDep,
+    storage: StorageDep,
+    upload_id: UploadId,
+    part_number: PartNumber,
 ) -> PartOut:
     """Receive one part through the API (any backend); its size must be the planned one."""
-    state = await run_in_threadpool(_load, storage, project, upload_id)
-    expected = _part_size(state, part_number)
+    upload = await run_in_threadpool(_load, session, project, upload_id)
+    key, storage_upload_id = upload.storage_key, upload.storage_upload_id
+    expected = _part_size(upload, part_number)
+    await run_in_threadpool(session.close)  # hold no database connection while the bytes flow
     with tempfile.SpooledTemporaryFile(max_size=8 * 1024 * 1024) as buf:
         received = 0
         async for chunk in request.stream():
@@ -194,26 +271,42 @@ async def upload_part(
             )
         buf.seek(0)
         try:
-            etag = await run_in_threadpool(
-                storage.upload_part, state.key, state.storage_upload_id, part_number, buf
-            )
+            etag = await run_in_threadpool(storage.upload_part, key, storage_upload_id, part_number, buf)
         except StorageKeyError:
             raise HTTPException(status.HTTP_404_NOT_FOUND, f"upload {upload_id} not found") from None
     return PartOut(part_number=part_number, etag=etag)
 
 
-def _verify(storage: Storage, state: UploadState, tmp: Path) -> tuple[str, int, int, int]:
+def _verify(storage: Storage, upload: Upload, tmp: Path) -> tuple[str, int, int, int]:
     """(sha256, size, width, height) of the assembled object; ValueError/ImageError when it fails."""
-    filename = state.name.split("/", 1)[1]
+    filename = upload.name.split("/", 1)[1]
     local = tmp / "image"
-    with storage.open_read(state.key) as body:
+    with storage.open_read(upload.storage_key) as body:
         sha256, size = hash_stream(body, local)
-    if size != state.size:
-        raise ValueError(f"{filename}: {size} bytes assembled, {state.size} announced")
-    if state.sha256 is not None and sha256 != state.sha256:
-        raise ValueError(f"{filename}: sha256 {sha256} does not match the announced {state.sha256}")
+    if size != upload.size_bytes:
+        raise ValueError(f"{filename}: {size} bytes assembled, {upload.size_bytes} announced")
+    if upload.sha256 is not None and sha256 != upload.sha256:
+        raise ValueError(f"{filename}: sha256 {sha256} does not match the announced {upload.sha256}")
     width, height = decode_check(local, filename)
     return sha256, size, width, height
+
+
+def _parts_to_complete(storage: Storage, upload: Upload, body: UploadComplete) -> list[tuple[int, str]]:
+    """[(part number, ETag)] from the request, or else from the storage's list; 422 unless every part
+    1..part_count is there once."""
+    if body.parts is not None:
+        parts = [(p.part_number, p.etag) for p in body.parts]
+    else:
+        parts = [(p.part_number, p.etag) for p in _received(storage, upload)]
+    numbers = sorted(n for n, _ in parts)
+    if numbers != list(range(1, upload.part_count + 1)):
+        missing = sorted(set(range(1, upload.part_count + 1)) - set(numbers))
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f"expected parts 1..{upload.part_count} once each, got {numbers[:20]}"
+            + (f"; missing {missing[:20]}" if missing else ""),
+        )
+    return parts
 
 
 @router.post(
@@ -233,65 +326,57 @@ def complete_upload(
     settings: SettingsDep,
     upload_id: UploadId,
 ) -> UploadedImage:
-    state = _load(storage, project, upload_id)
-    numbers = sorted(p.part_number for p in body.parts)
-    if numbers != list(range(1, state.part_count + 1)):
+    """Assemble the parts (those given with their ETags, or without `parts` those the storage lists),
+    check the image and register it; the upload is then finished."""
+    upload = _load(session, project, upload_id)
+    parts = _parts_to_complete(storage, upload, body)
+    if crud.get_image(session, project.id, upload.name) is not None:
+        _drop(session, storage, upload)
         raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            f"expected parts 1..{state.part_count} once each, got {numbers[:20]}",
-        )
-    if crud.get_image(session, project.id, state.name) is not None:
-        with contextlib.suppress(StorageError):
-            storage.abort_multipart(state.key, state.storage_upload_id)
-        upload_state.delete(storage, project.tenant_id, project.id, state.id)
-        raise HTTPException(
-            status.HTTP_409_CONFLICT, f"image {state.name!r} was stored meanwhile; upload dropped"
+            status.HTTP_409_CONFLICT, f"image {upload.name!r} was stored meanwhile; upload dropped"
         )
     try:
-        storage.complete_multipart(
-            state.key, state.storage_upload_id, [(p.part_number, p.etag) for p in body.parts]
-        )
+        storage.complete_multipart(upload.storage_key, upload.storage_upload_id, parts)
     except (ValueError, StorageError) as e:  # wrong ETag, missing part: the client may fix and retry
         raise HTTPException(
             status.HTTP_422_UNPROCESSABLE_CONTENT, f"cannot assemble the parts: {e}"
         ) from None
     with tempfile.TemporaryDirectory(prefix="midview-complete-", dir=settings.upload_tmp_dir) as tmp:
         try:
-            sha256, size, width, height = _verify(storage, state, Path(tmp))
+            sha256, size, width, height = _verify(storage, upload, Path(tmp))
         except (ValueError, ImageError) as e:
-            storage.delete(state.key)
-            upload_state.delete(storage, project.tenant_id, project.id, state.id)
+            storage.delete(upload.storage_key)
+            _drop(session, storage, upload, abort=False)
             raise HTTPException(
                 status.HTTP_422_UNPROCESSABLE_CONTENT,
                 {"message": "upload rejected and deleted", "errors": [str(e)]},
             ) from None
-    try:
+    name, uid = upload.name, upload.id
+    try:  # the image row and the end of the upload in one transaction
         row, created = crud.add_image(
             session,
             project.id,
-            state.name,
+            name,
             sha256=sha256,
             size_bytes=size,
-            storage_key=state.key,
+            storage_key=upload.storage_key,
             width=width,
             height=height,
-            metadata={"upload_id": state.id},
+            metadata={"upload_id": uid},
         )
+        session.delete(upload)
         session.commit()
     except Exception:
         session.rollback()
-        log.error("upload %s: %s could not be registered after assembly", state.id, state.name)
+        log.error("upload %s: %s could not be registered after assembly", uid, name)
         raise
-    finally:
-        upload_state.delete(storage, project.tenant_id, project.id, state.id)
-    log.info("project %s: upload %s completed as %s (%d bytes)", project.id, state.id, state.name, size)
+    log.info("project %s: upload %s completed as %s (%d bytes)", project.id, uid, name, size)
     return UploadedImage(**ImageOut.model_validate(row).model_dump(), created=created)
 
 
 @router.delete("/{upload_id}", status_code=status.HTTP_204_NO_CONTENT)
-def abort_upload(project: ProjectDep, storage: StorageDep, upload_id: UploadId) -> Response:
-    state = _load(storage, project, upload_id)
-    with contextlib.suppress(StorageKeyError):
-        storage.abort_multipart(state.key, state.storage_upload_id)
-    upload_state.delete(storage, project.tenant_id, project.id, state.id)
+def abort_upload(
+    project: ProjectDep, session: SessionDep, storage: StorageDep, upload_id: UploadId
+) -> Response:
+    _drop(session, storage, _load(session, project, upload_id))
     return Response(status_code=status.HTTP_204_NO_CONTENT)

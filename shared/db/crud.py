@@ -29,6 +29,7 @@ from shared.db.models import (
     StageRun,
     StageStatus,
     Tenant,
+    Upload,
     utcnow,
 )
 from shared.storage.keys import InvalidKeyError, split_image_name
@@ -311,6 +312,56 @@ def add_pos_records(
 def list_pos_records(session: Session, project_id: str) -> list[PosRecordRow]:
     stmt = sa.select(PosRecordRow).where(PosRecordRow.project_id == str(project_id))
     return list(session.scalars(stmt.order_by(PosRecordRow.image_name)))
+
+
+# multipart uploads
+def create_upload(
+    session: Session,
+    project_id: str,
+    name: str,
+    *,
+    storage_key: str,
+    storage_upload_id: str,
+    size_bytes: int,
+    part_size: int,
+    part_count: int,
+    sha256: str | None = None,
+) -> Upload:
+    """Register an unfinished multipart upload of an image name; ConflictError when one of that name is
+    in progress. The unique (project, name) constraint decides between concurrent starts: the second
+    insert waits for the first transaction and then fails."""
+    project = _project(session, project_id)
+    upload = Upload(
+        project_id=project.id,
+        name=name,
+        storage_key=storage_key,
+        storage_upload_id=storage_upload_id,
+        size_bytes=size_bytes,
+        sha256=sha256.lower() if sha256 else None,
+        part_size=part_size,
+        part_count=part_count,
+    )
+    return _add(session, upload, f"an upload of {name!r} is already in progress")
+
+
+def get_upload(session: Session, project_id: str, upload_id: str) -> Upload | None:
+    upload = session.get(Upload, str(upload_id))
+    return upload if upload is not None and upload.project_id == str(project_id) else None
+
+
+def list_uploads(session: Session, project_id: str) -> list[Upload]:
+    """The project's unfinished uploads, oldest first."""
+    stmt = sa.select(Upload).where(Upload.project_id == str(project_id))
+    return list(session.scalars(stmt.order_by(Upload.created_at, Upload.id)))
+
+
+def uploads_in_progress(session: Session, project_id: str, names: Iterable[str]) -> list[str]:
+    """Those of names that an unfinished multipart upload is writing, sorted."""
+    wanted = sorted(set(names))
+    if not wanted:
+        return []
+    stmt = sa.select(Upload.name).where(Upload.project_id == str(project_id), Upload.name.in_(wanted))
+    return sorted(session.scalars(stmt))
 
 
 # jobs

@@ -170,6 +170,7 @@ class Project(Base):
     images: Mapped[list[Image]] = _children("project")
     pos_records: Mapped[list[PosRecordRow]] = _children("project")
     jobs: Mapped[list[Job]] = _children("project")
+    uploads: Mapped[list[Upload]] = _children("project")
 
 
 class Image(Base):
@@ -195,6 +196,27 @@ class Image(Base):
     created_at: Mapped[datetime] = _created()
 
     project: Mapped[Project] = relationship(back_populates="images")
+
+
+class Upload(Base):
+    """An unfinished client-driven multipart upload of one image (api/routes/uploads.py). One per image
+    name and project: the unique constraint makes "none in progress" and the start one atomic step."""
+
+    __tablename__ = "uploads"
+    __table_args__ = (sa.UniqueConstraint("project_id", "name", name="uq_uploads_project_name"),)
+
+    id: Mapped[str] = _id()
+    project_id: Mapped[str] = _fk("projects.id")
+    name: Mapped[str] = mapped_column(sa.String(512))  # the image name, aerial/A0001.jpg
+    storage_key: Mapped[str] = mapped_column(sa.String(1024))  # where the parts are assembled
+    storage_upload_id: Mapped[str] = mapped_column(sa.String(1024))
+    size_bytes: Mapped[int] = mapped_column(sa.BigInteger)
+    sha256: Mapped[str | None] = mapped_column(sa.String(64))
+    part_size: Mapped[int] = mapped_column(sa.BigInteger)
+    part_count: Mapped[int]
+    created_at: Mapped[datetime] = _created()
+
+    project: Mapped[Project] = relationship(back_populates="uploads")
 
 
 class PosRecordRow(Base):

@@ -3,7 +3,14 @@
 from __future__ import annotations
 
 from shared.config import Settings, get_settings
-from shared.storage.base import NotSupportedError, ObjectStat, Storage, StorageError, StorageKeyError
+from shared.storage.base import (
+    NotSupportedError,
+    ObjectStat,
+    PartStat,
+    Storage,
+    StorageError,
+    StorageKeyError,
+)
 from shared.storage.keys import InvalidKeyError
 from shared.storage.local import LocalStorage
 from shared.storage.s3 import S3Storage
@@ -32,6 +39,7 @@ __all__ = [
     "LocalStorage",
     "NotSupportedError",
     "ObjectStat",
+    "PartStat",
     "S3Storage",
     "Storage",
     "StorageError",

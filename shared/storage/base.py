@@ -36,6 +36,16 @@ class ObjectStat:
     content_type: str | None = None
 
 
+@dataclass(frozen=True)
+class PartStat:
+    """One part received by an unfinished multipart upload."""
+
+    part_number: int
+    size: int
+    etag: str  # without quotes, as complete_multipart wants it
+    last_modified: datetime | None = None
+
+
 def check_part_number(part_number: int) -> int:
     if not MIN_PART_NUMBER <= int(part_number) <= MAX_PART_NUMBER:
         raise ValueError(f"part number {part_number} outside [{MIN_PART_NUMBER}, {MAX_PART_NUMBER}]")
@@ -116,6 +126,11 @@ class Storage(abc.ABC):
     @abc.abstractmethod
     def upload_part(self, key: str, upload_id: str, part_number: int, data: bytes | BinaryIO) -> str:
         """Upload one part through this process; return its ETag."""
+
+    @abc.abstractmethod
+    def list_parts(self, key: str, upload_id: str) -> list[PartStat]:
+        """The parts an unfinished upload has received so far, by part number (a client that lost its
+        ETags resumes from them); StorageKeyError when the upload does not exist."""
 
     @abc.abstractmethod
     def complete_multipart(self, key: str, upload_id: str, parts: Sequence[tuple[int, str]]) -> ObjectStat:

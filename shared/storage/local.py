@@ -14,7 +14,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import BinaryIO
 
-from shared.storage.base import ObjectStat, Storage, StorageKeyError, check_part_number
+from shared.storage.base import ObjectStat, PartStat, Storage, StorageKeyError, check_part_number
 from shared.storage.keys import InvalidKeyError, validate_key, validate_prefix
 
 CHUNK = 1024 * 1024
@@ -204,6 +204,19 @@ class LocalStorage(Storage):
             Path(tmp).unlink(missing_ok=True)
             raise
         return etag
+
+    def list_parts(self, key: str, upload_id: str) -> list[PartStat]:
+        folder = self._upload_dir(key, upload_id)
+        out = []
+        for part in sorted(folder.glob("[0-9]" * 5 + ".part")):
+            try:
+                etag = part.with_suffix(".etag").read_text()
+                st = part.stat()
+            except FileNotFoundError:  # being replaced, or the upload finished meanwhile
+                continue
+            modified = datetime.fromtimestamp(st.st_mtime, UTC)
+            out.append(PartStat(int(part.stem), st.st_size, etag, modified))
+        return out
 
     def complete_multipart(self, key: str, upload_id: str, parts: Sequence[tuple[int, str]]) -> ObjectStat:
         folder = self._upload_dir(key, upload_id)

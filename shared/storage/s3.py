@@ -12,7 +12,14 @@ from boto3.s3.transfer import TransferConfig
 from botocore.config import Config
 from botocore.exceptions import BotoCoreError, ClientError
 
-from shared.storage.base import ObjectStat, Storage, StorageError, StorageKeyError, check_part_number
+from shared.storage.base import (
+    ObjectStat,
+    PartStat,
+    Storage,
+    StorageError,
+    StorageKeyError,
+    check_part_number,
+)
 from shared.storage.keys import validate_key, validate_prefix
 
 MB = 1024 * 1024
@@ -31,6 +38,10 @@ def _errors(what: str) -> Iterator[None]:
         raise StorageError(f"{what}: {e}") from e
     except BotoCoreError as e:
         raise StorageError(f"{what}: {e}") from e
+
+
+def _stamp(part: PartStat) -> float:
+    return part.last_modified.timestamp() if part.last_modified is not None else 0.0
 
 
 class S3Storage(Storage):
@@ -227,6 +238,25 @@ class S3Storage(Storage):
                 Bucket=self.bucket, Key=key, UploadId=upload_id, PartNumber=n, Body=data
             )
         return r["ETag"].strip('"')
+
+    def list_parts(self, key: str, upload_id: str) -> list[PartStat]:
+        """The parts received; one per part number, the newest (SeaweedFS lists every upload of a part
+        number that was sent again, real S3 only the last)."""
+        validate_key(key)
+        pages = self.client.get_paginator("list_parts").paginate(
+            Bucket=self.bucket, Key=key, UploadId=upload_id
+        )
+        newest: dict[int, PartStat] = {}
+        with _errors(f"list parts of {key!r}"):
+            for page in pages:
+                for p in page.get("Parts", []):
+                    part = PartStat(
+                        int(p["PartNumber"]), int(p["Size"]), str(p["ETag"]).strip('"'), p.get("LastModified")
+                    )
+                    seen = newest.get(part.part_number)
+                    if seen is None or _stamp(part) >= _stamp(seen):
+                        newest[part.part_number] = part
+        return [newest[n] for n in sorted(newest)]
 
     def complete_multipart(self, key: str, upload_id: str, parts: Sequence[tuple[int, str]]) -> ObjectStat:
         validate_key(key)
