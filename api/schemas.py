@@ -146,6 +146,30 @@ class PosOut(Out):
     source_format: str | None
 
 
+class PosFromExif(In):
+    """Which images to read POS from, and how (services.pos.exif)."""
+
+    image_set: ImageSet | None = Field(None, description="Only this set; default: every image")
+    names: list[str] | None = Field(
+        None, max_length=100_000, description="Only these images (SET/FILE); default: every image"
+    )
+    altitude: Literal["gps", "relative"] = Field(
+        "gps",
+        description="gps: the absolute height, EXIF GPSAltitude (else DJI XMP AbsoluteAltitude), above "
+        "sea level; relative: DJI XMP RelativeAltitude (above the take-off point) + takeoff_h",
+    )
+    takeoff_h: float = Field(0.0, ge=-1000, le=10_000, description="Height of the take-off point (relative)")
+    attitude: Literal["gimbal", "none"] = Field(
+        "gimbal",
+        description="gimbal: camera attitude from DJI XMP Gimbal*Degree when present; none: no attitude",
+    )
+    skip_without_gps: bool = Field(
+        False,
+        description="Images whose metadata has no position (or no such altitude) are skipped with a "
+        "warning instead of rejecting the request (e.g. ground photos without GPS)",
+    )
+
+
 class PosUploadResult(BaseModel):
     format: str
     stored: int = Field(description="Rows inserted or replaced by this upload")

@@ -1,4 +1,5 @@
-"""POS (position and orientation) of a project's images: upload a file, read back the rows."""
+"""POS (position and orientation) of a project's images: upload a file, or read it from the stored
+images' EXIF/XMP; read back the rows."""
 
 from __future__ import annotations
 
@@ -7,14 +8,15 @@ from typing import Annotated
 
 import sqlalchemy as sa
 from fastapi import APIRouter, File, HTTPException, Query, UploadFile, status
+from sqlalchemy.orm import Session
 
-from api.deps import ProjectDep, SessionDep, SettingsDep
+from api.deps import ProjectDep, SessionDep, SettingsDep, StorageDep
 from api.errors import pos_error_detail
-from api.posfile import PosFormat, check_against_project, detect_format, parse_pos_text
-from api.schemas import PosOut, PosUploadResult
+from api.posfile import PosFormat, check_against_project, detect_format, parse_pos_text, pos_from_images
+from api.schemas import PosFromExif, PosOut, PosUploadResult
 from services.pos import PosError
 from shared.db import crud
-from shared.db.models import PosRecordRow
+from shared.db.models import PosRecordRow, Project
 
 router = APIRouter(prefix="/projects/{project_id}/pos", tags=["pos"])
 log = logging.getLogger("midview.api")
@@ -81,6 +83,56 @@ def upload_pos(
     return PosUploadResult(
         format=fmt, stored=stored, total=total, removed=removed or 0, warnings=check.warnings
     )
+
+
+def _exif_images(session: Session, project: Project, body: PosFromExif) -> list[tuple[str, str]]:
+    """[(name, storage key)] of the images to read: the set's, or those named; 422 for unknown names."""
+    images = crud.list_images(session, project.id, body.image_set)
+    if body.names is not None:
+        by_name = {im.name: im for im in images}
+        unknown = [n for n in body.names if n not in by_name]
+        if unknown:
+            raise _unprocessable(
+                "names that are no uploaded image"
+                + (f" of the {body.image_set} set" if body.image_set else ""),
+                [f"image {n!r} is not uploaded" for n in unknown[:100]],
+            )
+        images = [by_name[n] for n in dict.fromkeys(body.names)]
+    if not images:
+        raise _unprocessable("no images to read POS from", ["the project has no such images"])
+    return [(im.name, im.storage_key) for im in images]
+
+
+@router.post(
+    "/from-exif",
+    response_model=PosUploadResult,
+    responses={422: {"description": "An image is unreadable or has no position; nothing stored"}},
+)
+def pos_from_exif(
+    body: PosFromExif, project: ProjectDep, session: SessionDep, storage: StorageDep, settings: SettingsDep
+) -> PosUploadResult:
+    """Read POS from the stored images' EXIF GPS and DJI XMP (drone-dji: altitudes, gimbal attitude, RTK
+    accuracies) and insert or replace their rows (`source_format` exif). Any image that cannot be read,
+    or has no position or no altitude of the kind asked for, rejects the request (422, one reason per
+    image) and leaves the stored POS untouched; with `skip_without_gps` images without a position are
+    skipped with a warning instead."""
+    images = _exif_images(session, project, body)
+    session.commit()  # no database connection held while the images download
+    options = {"altitude": body.altitude, "attitude": body.attitude, "takeoff_h": body.takeoff_h}
+    result = pos_from_images(storage, images, options, body.skip_without_gps, settings.upload_tmp_dir)
+    if result.errors:
+        raise _unprocessable("POS could not be read from every image; nothing stored", result.errors)
+    if not result.records:
+        raise _unprocessable("no image carries a position; nothing stored", result.warnings)
+    try:
+        stored = crud.add_pos_records(session, project.id, result.records, source_format="exif")
+    except ValueError as e:
+        session.rollback()
+        raise _unprocessable("invalid POS", [str(e)]) from None
+    session.commit()
+    total = len(crud.list_pos_records(session, project.id))
+    log.info("project %s: %d POS rows read from EXIF/XMP (%s altitude)", project.id, stored, body.altitude)
+    return PosUploadResult(format="exif", stored=stored, total=total, removed=0, warnings=result.warnings)
 
 
 @router.get("", response_model=list[PosOut])
