@@ -50,11 +50,18 @@ def sfm(
     no_priors: bool = typer.Option(
         False, "--no-priors", help="do not use POS positions in bundle adjustment"
     ),
+    out_crs: str = typer.Option(
+        None,
+        "--out-crs",
+        help="also write camera positions in this CRS (EPSG:NNNN; 'none': WGS84 only); "
+        "default: the POS CRS unless it is WGS84 latitude/longitude",
+    ),
 ) -> None:
     """Aerial SfM: SIFT (or ALIKED) features, POS-guided matching, incremental mapping, georeferencing.
 
-    Writes OUT/sparse (COLMAP model in the local ENU frame), OUT/georef.json, OUT/report.json and
-    OUT/cameras.geojson (WGS84 camera positions and footprints).
+    Writes OUT/sparse (COLMAP model in the local ENU frame), OUT/georef.json, OUT/report.json,
+    OUT/cameras.geojson (WGS84 camera positions and footprints) and, in the output CRS, OUT/cameras.csv
+    (POS CSV format) and OUT/cameras.epsg<code>.geojson.
     """
     from services.colmap_model import read_cameras_json
     from services.pos import PosError
@@ -71,6 +78,8 @@ def sfm(
         conf["matching"] = {**conf["matching"], "exhaustive_max": exhaustive_max}
     if no_priors:
         conf["mapping"] = {**conf["mapping"], "use_prior_position": False}
+    if out_crs is not None:
+        conf["export"] = {**conf["export"], "out_crs": out_crs}
     try:
         cams = read_cameras_json(cameras) if cameras is not None else None
         sparse = main(conf, images, out, pos, cams)
@@ -87,4 +96,8 @@ def sfm(
     )
     for u in report["unregistered"]:
         typer.echo(f"  not registered: {u['name']}: {u['reason']}")
-    typer.echo(f"wrote {sparse}, {out / 'georef.json'}, {out / 'report.json'}, {out / 'cameras.geojson'}")
+    crs = report["crs"]
+    if crs["output"]:
+        typer.echo(f"camera positions in {crs['output']} (POS CRS {crs['pos'] or 'WGS84'})")
+    files = ", ".join(str(out / f) for f in ("georef.json", "report.json", *crs["files"]))
+    typer.echo(f"wrote {sparse}, {files}")

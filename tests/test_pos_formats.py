@@ -111,6 +111,17 @@ def test_geo_txt_projected_and_round_trip(tmp_path):
         assert back[1].R_world_from_cam is None
 
 
+def test_readers_keep_the_input_crs(tmp_path):
+    recs = _recs()
+    assert {r.crs for r in read_pos(write_geo_txt(tmp_path / "geo.txt", recs, crs="EPSG:32633"))} == {
+        "EPSG:32633"
+    }
+    assert {r.crs for r in parse_geo_txt("WGS84 UTM 33N\na.jpg 500000 6170000 80\n")} == {"EPSG:32633"}
+    for crs in ("EPSG:4979", "EPSG:25833"):
+        assert {r.crs for r in read_pos(write_pos_json(tmp_path / "p.json", recs, crs=crs))} == {crs}
+        assert {r.crs for r in read_pos(write_pos_csv(tmp_path / "p.csv", recs, crs=crs))} == {crs}
+
+
 @pytest.mark.parametrize(
     ("body", "message"),
     [

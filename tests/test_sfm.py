@@ -14,8 +14,20 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from cli.sfm import sfm as sfm_command
-from services.pos import LocalFrame, PosError, PosRecord, write_pos_csv, ypr_to_matrix
-from services.sfm import GeorefError, confs, main
+from services.pos import (
+    CRSError,
+    LocalFrame,
+    PosError,
+    PosRecord,
+    from_wgs84,
+    matrix_to_ypr,
+    read_pos,
+    read_pos_csv,
+    to_wgs84,
+    write_pos_csv,
+    ypr_to_matrix,
+)
+from services.sfm import GeorefError, confs, export, main
 from services.sfm.aerial import prepare_images, select_records, verify_images
 from services.sfm.geojson import camera_features, footprint
 from services.sfm.georef import condition, estimate
@@ -100,6 +112,61 @@ def test_footprint_of_a_nadir_camera():
     x, y = ring[:-1, 0], ring[:-1, 1]
     assert np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0  # counter-clockwise (RFC 7946)
     assert poly["properties"] | {"set": "aerial", "kind": "footprint"} == poly["properties"]
+
+
+def _camera_at(rec: pycolmap.Reconstruction, image_id: int, R_wc: np.ndarray, c: np.ndarray) -> None:
+    img = pycolmap.Image(name=f"aerial/{image_id}.jpg", camera_id=1, image_id=image_id)
+    rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(pycolmap.Rotation3d(R_wc.T), -R_wc.T @ c))
+
+
+def test_output_crs_resolution():
+    assert export.resolve_crs("auto", "EPSG:32633") == "EPSG:32633"
+    assert export.resolve_crs("auto", "EPSG:4979") is None and export.resolve_crs("auto", None) is None
+    assert export.resolve_crs("auto", "EPSG:4326") is None
+    assert export.resolve_crs("auto", "EPSG:4258") == "EPSG:4258"  # ETRS89 lat/lon: not WGS84
+    assert export.resolve_crs("none", "EPSG:32633") is None and export.resolve_crs(None, "EPSG:32633") is None
+    assert export.resolve_crs("EPSG:25833", None) == "EPSG:25833"
+    with pytest.raises(CRSError):
+        export.resolve_crs("EPSG:999999", None)
+
+
+def test_camera_positions_round_trip_in_utm(tmp_path):
+    """Cameras placed at known UTM 33N coordinates come out at those coordinates in cameras.csv and in
+    the projected GeoJSON, and read back (read_pos) to the same WGS84 positions and attitudes."""
+    known = np.array([[500100.0, 6170200.0, 80.0], [500160.0, 6170180.0, 82.0], [499950.0, 6169900.0, 78.5]])
+    lat, lon, h = to_wgs84("EPSG:32633", *known.T)
+    frame = LocalFrame(float(lat.mean()), float(lon.mean()), float(h.mean()))
+    rec = _nadir_reconstruction()
+    rec.deregister_frame(rec.images[1].frame_id)
+    atts = [ypr_to_matrix(0, -90, 0), ypr_to_matrix(90, -45, 0), ypr_to_matrix(200, -60, 3)]
+    for k, (a, b, c) in enumerate(zip(lat, lon, h, strict=True)):
+        _camera_at(rec, 2 + k, frame.rotation_to_enu_at(a, b).T @ atts[k], frame.from_wgs84(a, b, c)[0])
+    export.main({"out_crs": "auto"}, rec, frame, tmp_path, pos_crs="EPSG:32633", ground_z=-80.0)
+    text = (tmp_path / "cameras.csv").read_text()
+    assert "# crs: EPSG:32633" in text and "name,x,y,z,yaw,pitch,roll" in text
+    rows = [ln.split(",") for ln in text.splitlines()[4:]]
+    got = np.array([[float(v) for v in r[1:4]] for r in rows])
+    np.testing.assert_allclose(got, known, atol=1e-3)
+    back = read_pos(tmp_path / "cameras.csv")
+    assert [r.name for r in back] == ["aerial/2.jpg", "aerial/3.jpg", "aerial/4.jpg"]
+    for r, a, b, R in zip(back, lat, lon, atts, strict=True):
+        assert (r.lat, r.lon, r.crs) == (pytest.approx(a, abs=1e-9), pytest.approx(b, abs=1e-9), "EPSG:32633")
+        np.testing.assert_allclose(r.R_world_from_cam, R, atol=1e-4)
+    assert matrix_to_ypr(back[2].R_world_from_cam)[0] == pytest.approx(200.0, abs=1e-3)
+    fc = json.loads((tmp_path / "cameras.epsg32633.geojson").read_text())
+    assert fc["crs"]["properties"]["name"] == "urn:ogc:def:crs:EPSG::32633"
+    points = [f["geometry"]["coordinates"] for f in fc["features"] if f["properties"]["kind"] == "camera"]
+    np.testing.assert_allclose(points, known, atol=1e-3)
+    (poly,) = [f for f in fc["features"] if f["properties"]["name"] == "aerial/2.jpg"][1:]
+    ring = np.array(poly["geometry"]["coordinates"][0])  # nadir, about 80 m up, f = 100 px: 160 x 80 m
+    assert np.ptp(ring[:, 0]) == pytest.approx(160.0, rel=0.01) and np.ptp(ring[:, 1]) == pytest.approx(
+        80, rel=0.01
+    )
+    wgs = json.loads((tmp_path / "cameras.geojson").read_text())
+    assert "crs" not in wgs and len(wgs["features"]) == len(fc["features"])
+    export.main({"out_crs": "auto"}, rec, frame, tmp_path, pos_crs="EPSG:4979")
+    assert not (tmp_path / "cameras.csv").exists()  # WGS84 POS: WGS84 outputs only, stale files removed
+    assert not (tmp_path / "cameras.epsg32633.geojson").exists()
 
 
 def test_unregistered_reasons():
@@ -205,6 +272,35 @@ def test_sfm_on_the_tiny_synthetic_scene(tiny_scene, tmp_path):
         set(georef["frame"]) >= {"lat0", "lon0", "h0"} and len(georef["images"]) == report["num_registered"]
     )
     assert set(report["timings_s"]) >= {"features", "matching", "mapping", "georef"}
+    assert georef["crs"] == {"pos": "EPSG:4979", "output": None, "files": ["cameras.geojson"]}
+    assert not (out / "cameras.csv").exists()  # a WGS84 POS: WGS84 outputs only
+
+
+def test_sfm_writes_cameras_in_the_pos_crs(tiny_scene, tmp_path):
+    """The tiny scene's POS given in UTM 33N: cameras.csv comes out in UTM 33N, within the POS noise of
+    the POS coordinates, and georef.json and report.json record both CRSs."""
+    utm = write_pos_csv(tmp_path / "pos-utm.csv", read_pos_csv(tiny_scene / "pos.csv"), crs="EPSG:32633")
+    app = typer.Typer()
+    app.command("sfm")(sfm_command)
+    app.command("other")(lambda: None)
+    out = tmp_path / "sfm"
+    r = CliRunner().invoke(app, ["sfm", str(tiny_scene), str(out), "--pos", str(utm)])
+    assert r.exit_code == 0, r.output
+    assert "camera positions in EPSG:32633" in r.output and "cameras.epsg32633.geojson" in r.output
+    georef = json.loads((out / "georef.json").read_text())
+    assert georef["crs"]["pos"] == georef["crs"]["output"] == "EPSG:32633"
+    assert json.loads((out / "report.json").read_text())["crs"]["output"] == "EPSG:32633"
+    pos = {r.name: r for r in read_pos(utm)}
+    got = read_pos(out / "cameras.csv")
+    assert len(got) >= 4 and {r.crs for r in got} == {"EPSG:32633"}
+    lines = (out / "cameras.csv").read_text().splitlines()
+    assert lines[1] == "# crs: EPSG:32633" and lines[3].startswith("name,x,y,z")
+    for row in lines[4:]:
+        name, x, y, z = row.split(",")[:4]
+        ref = np.array(from_wgs84("EPSG:32633", pos[name].lat, pos[name].lon, pos[name].h), float)
+        assert np.linalg.norm(np.array([float(x), float(y), float(z)]) - ref) < 2.0  # POS noise 0.5/0.8 m
+    r = CliRunner().invoke(app, ["sfm", str(tiny_scene), str(tmp_path / "bad"), "--out-crs", "EPSG:999999"])
+    assert r.exit_code == 2 and "unknown CRS 'EPSG:999999'" in r.output
 
 
 @pytest.mark.skipif(not BRIGHTON.is_dir(), reason=f"shared data absent: {BRIGHTON}")

@@ -11,7 +11,7 @@ from .exif import (
     read_xmp,
     record_from_exif,
 )
-from .frames import CRSError, LocalFrame, from_wgs84, parse_crs, to_wgs84
+from .frames import CRSError, LocalFrame, from_wgs84, is_wgs84_geographic, parse_crs, to_wgs84
 from .io import PosRow, match_names, read_pos, sniff_format
 from .json_format import parse_pos_json, read_pos_json, write_pos_json
 from .odm import parse_crs_line, parse_geo_txt, read_geo_txt, write_geo_txt
@@ -30,6 +30,7 @@ __all__ = [
     "check_image",
     "from_wgs84",
     "image_paths",
+    "is_wgs84_geographic",
     "match_names",
     "matrix_to_opk",
     "matrix_to_ypr",

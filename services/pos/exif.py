@@ -35,6 +35,7 @@ from .records import PosError, PosRecord
 if TYPE_CHECKING:
     from services.colmap_model import Camera
 
+EXIF_CRS = "EPSG:4326"  # EXIF GPS: WGS84 latitude and longitude (altitude above sea level)
 FILM_DIAGONAL_MM = 43.27  # diagonal of a 36 x 24 mm frame
 XMP_SCAN_BYTES = 256 * 1024  # XMP packets sit in an APP1 segment near the start of a JPEG
 _XMP_ATTR = re.compile(rb'drone-dji:(\w+)\s*=\s*"([^"]*)"')
@@ -214,7 +215,7 @@ def record_from_exif(
     std_xy = std_z = None
     if data.rtk_std is not None:
         std_xy, std_z = max(data.rtk_std[0], data.rtk_std[1]), data.rtk_std[2]
-    return PosRecord(name, float(lat), float(lon), float(h), R, std_xy, std_z)  # type: ignore[arg-type]
+    return PosRecord(name, float(lat), float(lon), float(h), R, std_xy, std_z, crs=EXIF_CRS)  # type: ignore[arg-type]
 
 
 def read_pos_exif(

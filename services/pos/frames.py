@@ -27,6 +27,11 @@ def parse_crs(code: str) -> pyproj.CRS:
     raise CRSError(f"CRS {code!r} is neither geographic nor projected")
 
 
+def is_wgs84_geographic(code: str | None) -> bool:
+    """Whether `code` is WGS84 latitude/longitude (EPSG:4326, EPSG:4979); None counts as WGS84."""
+    return code is None or parse_crs(code).to_epsg() in (4326, 4979)
+
+
 @lru_cache(maxsize=64)
 def _transformer(src: str, dst: str) -> pyproj.Transformer:
     return pyproj.Transformer.from_crs(pyproj.CRS(src), pyproj.CRS(dst), always_xy=True)
@@ -76,6 +81,10 @@ class LocalFrame:
         )
         ecef = np.stack([x, y, z], -1) - self._origin_ecef()
         return ecef @ self._rotation().T
+
+    def rotation_to_enu_at(self, lat: float, lon: float) -> np.ndarray:
+        """(3, 3) rotation taking vectors of this frame to the ENU frame tangent at (lat, lon)."""
+        return LocalFrame(lat, lon, 0.0)._rotation() @ self._rotation().T
 
     def to_wgs84(self, enu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N, 3) ENU -> (lat, lon, h) arrays."""

@@ -98,7 +98,7 @@ def rows_to_records(rows: list[PosRow], crs: str, source: str) -> list[PosRecord
         R = None
         if r.attitude is not None:
             R = opk_to_matrix(*r.attitude) if r.convention == "opk" else ypr_to_matrix(*r.attitude)
-        out.append(PosRecord(r.name, float(lat[i]), float(lon[i]), float(h[i]), R, *r.std))
+        out.append(PosRecord(r.name, float(lat[i]), float(lon[i]), float(h[i]), R, *r.std, crs=crs))
     return out
 
 

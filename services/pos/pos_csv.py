@@ -145,6 +145,7 @@ def parse_pos_csv(text: str, source: str = "<pos>") -> list[PosRecord]:
                 std_xy=s[0],
                 std_z=s[1],
                 std_att=s[2],
+                crs=crs,
             )
         )
     return records

@@ -30,6 +30,7 @@ class PosRecord:
     std_xy: float | None = None  # metres
     std_z: float | None = None  # metres
     std_att: float | None = None  # degrees
+    crs: str | None = None  # the CRS of the POS source (positions here are WGS84 whatever it was)
 
     @property
     def image_set(self) -> str:

@@ -15,7 +15,9 @@ Steps (each a `shared.logging.stage`), all in pycolmap 4 on one COLMAP database:
    POS positions (robust loss), so the models come out in the ENU frame. The largest model is kept.
 5. georef: a robust similarity from its camera centres to the POS positions (georef.py), applied to
    the model, with residuals per image.
-6. outputs: out/sparse (COLMAP model, local ENU), georef.json, report.json, cameras.geojson.
+6. outputs: out/sparse (COLMAP model, local ENU), georef.json, report.json, cameras.geojson (WGS84)
+   and, in the output CRS (conf export.out_crs; by default the POS CRS unless WGS84 lat/lon),
+   cameras.csv and cameras.epsg<code>.geojson (export.py).
 """
 
 from __future__ import annotations
@@ -49,8 +51,8 @@ from shared.config import get_settings
 from shared.images import ImageError
 from shared.logging import stage
 
+from . import export as export_mod
 from . import georef as georef_mod
-from .geojson import write_geojson
 from .report import build_report, write_report
 
 logger = logging.getLogger("midview.sfm")
@@ -74,6 +76,7 @@ _BASE: dict[str, Any] = {
     "camera": {"model": "SIMPLE_RADIAL"},
     "pos": {"default_std_xy": 3.0, "default_std_z": 5.0},  # metres, when the POS gives none (EXIF GPS)
     "georef": dict(georef_mod.default_conf),
+    "export": dict(export_mod.default_conf),  # out_crs: "auto" (the POS CRS unless WGS84), None or a code
     "verify_images": "decode",  # "decode" (every image decoded once), "header" or "none"
     "colmap_log_level": 1,  # glog minloglevel while pycolmap runs: 0 info, 1 warnings, 2 errors
 }
@@ -168,6 +171,15 @@ def select_records(
     mine = [r for r in records if r.image_set in (image_set, "")]
     check_against_images(mine, names)
     return {r.name: r for r in mine}
+
+
+def pos_crs(records: dict[str, PosRecord]) -> str | None:
+    """The CRS the POS was given in (None when unknown, e.g. records built in code)."""
+    codes = {r.crs for r in records.values() if r.crs is not None}
+    if len(codes) > 1:
+        logger.warning("POS records in several CRSs (%s): no output in the POS CRS", ", ".join(sorted(codes)))
+        return None
+    return next(iter(codes), None)
 
 
 def local_frame(records: dict[str, PosRecord]) -> LocalFrame:
@@ -431,6 +443,13 @@ def main(
             records, pos_source = list(pos_records), "records"
         pos = select_records(records, names, image_set)
         frame = local_frame(pos)
+        in_crs = pos_crs(pos)
+        out_crs = export_mod.resolve_crs(conf["export"]["out_crs"], in_crs)  # CRSError before any work
+        crs_doc = {
+            "pos": in_crs,
+            "output": out_crs,
+            "files": export_mod.output_files(out_crs, conf["export"]["footprints"]),
+        }
         camera, cam_source = camera_prior(cameras, root, names, image_set)
         single_camera = check_sizes(sizes, camera, cam_source)
         if not single_camera:
@@ -512,7 +531,7 @@ def main(
             shutil.rmtree(sparse)
         sparse.mkdir(parents=True)
         rec.write(str(sparse))
-        georef_mod.write_georef(out_dir / "georef.json", geo, frame)
+        georef_mod.write_georef(out_dir / "georef.json", geo, frame, crs_doc)
         timings["georef"] = time.perf_counter() - t0
         gsum = georef_mod.summary(geo)
         if gsum["suspect"]:
@@ -534,7 +553,7 @@ def main(
 
     with stage("sfm:report", logger):
         residuals = {n: float(np.linalg.norm(v)) for n, v in geo.residuals.items()}
-        write_geojson(out_dir / "cameras.geojson", rec, frame, residuals)
+        export_mod.main(conf["export"], rec, frame, out_dir, in_crs, residuals)
         timings["total"] = time.perf_counter() - t_all
         report = build_report(
             rec,
@@ -551,6 +570,7 @@ def main(
                 "pos_source": pos_source,
                 "camera_prior": cam_source,
                 "frame": {"lat0": frame.lat0, "lon0": frame.lon0, "h0": frame.h0},
+                "crs": crs_doc,
                 "database": dbstats,
             },
             min_inliers=conf["matching"]["min_num_inliers"],

@@ -1,4 +1,6 @@
-"""Camera positions and image footprints of a georeferenced reconstruction as GeoJSON (WGS84).
+"""Camera positions and image footprints of a georeferenced reconstruction as GeoJSON: WGS84
+(RFC 7946) by default, or the coordinates of another CRS with the legacy `crs` member that GIS tools
+read (`urn:ogc:def:crs:EPSG::<code>`), easting (or longitude) first.
 
 Footprints intersect the rays through the four image corners with a horizontal ground plane (by
 default the median height of the 3D points). Corners whose ray does not reach the plane in front of
@@ -13,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from services.pos import LocalFrame
+from services.pos import LocalFrame, from_wgs84, parse_crs
 
 
 def ground_height(rec: pycolmap.Reconstruction) -> float | None:
@@ -43,13 +45,26 @@ def footprint(img: pycolmap.Image, ground_z: float, max_range: float = 1e4) -> n
     return c + lam[:, None] * d
 
 
-def _ring(frame: LocalFrame, enu: np.ndarray) -> list[list[float]]:
-    """Closed, counter-clockwise (RFC 7946) [lon, lat] ring of ENU points."""
+def coordinates(frame: LocalFrame, enu: np.ndarray, crs: str | None = None) -> np.ndarray:
+    """(N, 3) GeoJSON positions of ENU points: [lon, lat, h] (WGS84) or [x, y, z] in `crs`."""
+    lat, lon, h = frame.to_wgs84(np.atleast_2d(enu))
+    if crs is None:
+        return np.stack([lon, lat, h], -1)
+    a, b, c = from_wgs84(crs, lat, lon, h)
+    if parse_crs(crs).is_geographic:  # from_wgs84 gives (lat, lon, h) there
+        a, b = b, a
+    out = np.stack([a, b, c], -1)
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{crs}: the camera positions do not transform into it (a missing grid?)")
+    return out
+
+
+def _ring(frame: LocalFrame, enu: np.ndarray, crs: str | None = None) -> list[list[float]]:
+    """Closed, counter-clockwise (RFC 7946) [lon, lat] (or [x, y] in `crs`) ring of ENU points."""
     x, y = enu[:, 0], enu[:, 1]
     if np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) < 0:  # clockwise: reverse
         enu = enu[::-1]
-    lat, lon, _ = frame.to_wgs84(enu)
-    ring = [[float(a), float(b)] for a, b in zip(lon, lat, strict=True)]
+    ring = [[float(a), float(b)] for a, b, _ in coordinates(frame, enu, crs)]
     return ring + ring[:1]
 
 
@@ -58,9 +73,11 @@ def camera_features(
     frame: LocalFrame,
     residuals: dict[str, float] | None = None,
     ground_z: float | None = None,
+    crs: str | None = None,
 ) -> dict:
     """A FeatureCollection: per registered image a Point (camera centre) and, if it hits the ground, a
-    Polygon (footprint); properties name, set, kind, residual (georeferencing, metres)."""
+    Polygon (footprint); properties name, set, kind, residual (georeferencing, metres). Coordinates in
+    WGS84, or in `crs` (then with a `crs` member)."""
     residuals = residuals or {}
     z = ground_height(rec) if ground_z is None else ground_z
     feats = []
@@ -72,12 +89,14 @@ def camera_features(
             "set": img.name.split("/", 1)[0] if "/" in img.name else "",
             "residual": residuals.get(img.name),
         }
-        lat, lon, h = frame.to_wgs84(img.projection_center()[None])
-        point = {"type": "Point", "coordinates": [float(lon[0]), float(lat[0]), float(h[0])]}
+        point = {
+            "type": "Point",
+            "coordinates": [float(v) for v in coordinates(frame, img.projection_center(), crs)[0]],
+        }
         feats.append({"type": "Feature", "geometry": point, "properties": {**props, "kind": "camera"}})
         fp = None if z is None else footprint(img, z)
         if fp is not None:
-            poly = {"type": "Polygon", "coordinates": [_ring(frame, fp)]}
+            poly = {"type": "Polygon", "coordinates": [_ring(frame, fp, crs)]}
             feats.append(
                 {
                     "type": "Feature",
@@ -85,7 +104,12 @@ def camera_features(
                     "properties": {**props, "kind": "footprint", "ground_z_enu": z},
                 }
             )
-    return {"type": "FeatureCollection", "features": feats}
+    doc: dict = {"type": "FeatureCollection", "features": feats}
+    if crs is not None:
+        code = parse_crs(crs).to_epsg()
+        name = f"urn:ogc:def:crs:EPSG::{code}" if code else parse_crs(crs).to_string()
+        doc["crs"] = {"type": "name", "properties": {"name": name}}
+    return doc
 
 
 def write_geojson(
@@ -94,8 +118,9 @@ def write_geojson(
     frame: LocalFrame,
     residuals: dict[str, float] | None = None,
     ground_z: float | None = None,
+    crs: str | None = None,
 ) -> Path:
     """Write `camera_features` to a .geojson file."""
     path = Path(path)
-    path.write_text(json.dumps(camera_features(rec, frame, residuals, ground_z)))
+    path.write_text(json.dumps(camera_features(rec, frame, residuals, ground_z, crs)))
     return path

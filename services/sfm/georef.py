@@ -227,11 +227,13 @@ def summary(geo: Georef) -> dict:
     }
 
 
-def write_georef(path: str | Path, geo: Georef, frame: LocalFrame) -> Path:
-    """georef.json: frame origin, similarity (ENU from reconstruction), conditioning, residuals per image."""
+def write_georef(path: str | Path, geo: Georef, frame: LocalFrame, crs: dict | None = None) -> Path:
+    """georef.json: frame origin, similarity (ENU from reconstruction), conditioning, residuals per image;
+    `crs`: the POS input CRS and the output CRS (`{"pos": ..., "output": ..., "files": [...]}`)."""
     q = pycolmap.Rotation3d(geo.R).quat  # xyzw
     doc = {
         "frame": {"type": "ENU", "lat0": frame.lat0, "lon0": frame.lon0, "h0": frame.h0},
+        "crs": crs or {"pos": None, "output": None},
         "sim3": {
             "scale": geo.scale,
             "rotation": geo.R.tolist(),
