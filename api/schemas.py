@@ -192,6 +192,8 @@ class StageRunOut(Out):
     status: str
     attempt: int
     worker: str | None
+    node: str | None = Field(None, description="Celery node (NAME@HOST) running the stage")
+    heartbeat_at: datetime | None = Field(None, description="Last sign of life of the task running it")
     started_at: datetime
     finished_at: datetime | None
     duration_s: float | None

@@ -48,6 +48,18 @@ class Settings(BaseSettings):
     task_max_retries: int = Field(
         5, ge=0, description="Retries of a task after a transient error (storage, database, broker)"
     )
+    heartbeat_timeout_s: float = Field(
+        120.0,
+        gt=0,
+        description="A running stage whose heartbeat is older than this and whose Celery node does not "
+        "answer a ping is re-dispatched (its node died)",
+    )
+    heartbeat_dead_s: float = Field(
+        1800.0,
+        gt=0,
+        description="A running stage whose heartbeat is older than this is re-dispatched even when its "
+        "node answers (the node restarted, or the task hangs)",
+    )
 
     @model_validator(mode="after")
     def _derive_paths(self) -> Settings:

@@ -606,3 +606,140 @@ def test_celery_cancel_stops_the_job(service, tiny_survey):
     r = c.post(f"/projects/{pid}/jobs", json={"options": {"stages": ["aerial_sfm"]}}, headers=h)
     assert wait_for_job(c, h, r.json()["id"], 120)["status"] == "succeeded", service.worker.text()[-3000:]
     assert service.worker.alive()
+
+
+# -- a worker node that died ---------------------------------------------------------------------
+def _node_name(worker) -> str:
+    """The Celery node name of the test worker, as it answers a ping."""
+    import socket
+
+    return worker.hostname.replace("%h", socket.gethostname())
+
+
+def _unacked(rd, job_id: str, stage: str) -> str:
+    """A message of the job reserved by a worker, as the Redis transport keeps it until acknowledged:
+    what a node that died leaves behind for the visibility timeout (hours)."""
+    tag = f"test-{uuid.uuid4().hex}"
+    message = {"body": "", "headers": {"task": "midview.run_stage", "argsrepr": f"['{job_id}', '{stage}']"}}
+    rd.hset("unacked", tag, json.dumps([message, "", "gpu"]))
+    return tag
+
+
+def _running_job(s, project_id, stage, node, heartbeat_age_s, now):
+    """A running job whose stage run was last heard of heartbeat_age_s ago, from node."""
+    job = crud.create_job(s, project_id, {"stages": ["aerial_sfm", "train_splat"]})
+    crud.set_job_status(s, job, JobStatus.running)
+    run = crud.start_stage(s, job, stage, worker=f"{node}:4242")
+    run.node, run.heartbeat_at = node, now - timedelta(seconds=heartbeat_age_s)
+    run.started_at = now - timedelta(seconds=heartbeat_age_s + 60)
+    job.created_at = job.started_at = now - timedelta(seconds=heartbeat_age_s + 120)
+    job.celery_root_id = str(uuid.uuid4())
+    s.flush()
+    return job.id
+
+
+def test_reconciler_redispatches_the_stages_of_a_dead_node(service):
+    """A stage whose heartbeat is old and whose node does not answer a Celery ping (the real worker
+    answers, a made-up node does not) is given up and dispatched again, although the dead node's message
+    still sits in `unacked`; a quiet stage on a live node, or a recent heartbeat, is left alone; a very
+    old heartbeat is given up whatever its node says."""
+    import redis
+    from conftest import RecordingDispatcher
+
+    from workers.celery_app import make_app
+    from workers.reconcile import NodeCheck, RedisLiveness, celery_ping, reconcile
+
+    settings, sm = service.app.state.settings, service.app.state.sessionmaker
+    live_node, dead_node = _node_name(service.worker), f"gpu-{uuid.uuid4().hex[:6]}@lost-host"
+    now = utcnow()
+    with sm() as s:
+        pid = crud.create_project(s, service.tenant.id, f"dead-node-{uuid.uuid4().hex[:6]}").id
+        dead = _running_job(s, pid, "train_splat", dead_node, 600, now)
+        quiet = _running_job(s, pid, "train_splat", live_node, 600, now)
+        fresh = _running_job(s, pid, "train_splat", dead_node, 5, now)
+        hung = _running_job(s, pid, "aerial_sfm", live_node, 7200, now)
+        s.commit()
+    mine = {dead, quiet, fresh, hung}
+    rd = redis.Redis.from_url(settings.broker_url)
+    tag = _unacked(rd, dead, "train_splat")
+    app = make_app(settings, name="midview-test-ping", set_as_current=False)
+    d = RecordingDispatcher()
+    try:
+        parts = RedisLiveness(rd).parts()
+        assert dead in parts.reserved and dead in parts.all()  # the plain probe: "live" for hours
+        nodes = NodeCheck(celery_ping(app), 120, 1800, active=parts.running | parts.queued)
+        with sm() as s:
+            plain = reconcile(s, RecordingDispatcher(), now, 900, is_live=parts.all())
+            assert dead not in {a.job_id for a in plain}  # without the node check: left for hours
+            s.rollback()
+            actions = [
+                a for a in reconcile(s, d, now, 900, is_live=parts.all(), nodes=nodes) if a.job_id in mine
+            ]
+            s.commit()
+        assert {(a.job_id, a.from_stage) for a in actions} == {(dead, "train_splat"), (hung, "aerial_sfm")}
+        assert dead_node in next(a.reason for a in actions if a.job_id == dead)
+        assert sorted(c for c in d.calls if c[1] in mine) == [
+            ("submit", j, st) for j, st in sorted([(dead, "train_splat"), (hung, "aerial_sfm")])
+        ]
+        with sm() as s:
+            runs = {
+                j: [
+                    (r.status.value, r.error)
+                    for r in s.scalars(sa.select(StageRun).where(StageRun.job_id == j))
+                ]
+                for j in mine
+            }
+        assert (
+            runs[dead][0][0] == "failed" and dead_node in runs[dead][0][1] and "abandoned" in runs[dead][0][1]
+        )
+        assert runs[hung][0][0] == "failed" and runs[quiet] == runs[fresh] == [("running", None)]
+        # the next pass leaves them: the given-up runs are closed, the jobs were just dispatched again
+        with sm() as s:
+            later = now + timedelta(seconds=60)
+            assert [a for a in reconcile(s, d, later, 900, nodes=nodes) if a.job_id in mine] == []
+    finally:
+        rd.hdel("unacked", tag)
+        app.close()
+        with sm() as s:
+            for j in mine:
+                crud.set_job_status(s, j, JobStatus.cancelled)
+                for run in s.scalars(sa.select(StageRun).where(StageRun.job_id == j)):
+                    if run.status == StageStatus.running:
+                        crud.finish_stage(s, run, StageStatus.cancelled)
+            s.commit()
+
+
+def test_a_job_whose_worker_node_died_completes(service, tiny_survey):
+    """The job's stage was running on a node that died (old heartbeat, no answer to a ping, its message
+    left in `unacked`): the periodic reconcile task on the real worker dispatches it again, and the job
+    completes there."""
+    import redis
+    from conftest import upload_survey, wait_for_job
+
+    from workers.celery_app import RECONCILE, make_app
+
+    c, h = service.client, service.tenant.headers
+    settings, sm = service.app.state.settings, service.app.state.sessionmaker
+    pid = upload_survey(c, service.tenant, tiny_survey, service.app.state.storage)
+    dead_node = f"gpu-{uuid.uuid4().hex[:6]}@lost-host"
+    with sm() as s:
+        job_id = _running_job(s, pid, "aerial_sfm", dead_node, 600, utcnow())
+        s.get(Job, job_id).options = {"stages": ["aerial_sfm"]}
+        s.commit()
+    rd = redis.Redis.from_url(settings.broker_url)
+    tag = _unacked(rd, job_id, "aerial_sfm")
+    app = make_app(settings, name="midview-test-beat", set_as_current=False)
+    try:
+        actions = [a for a in app.send_task(RECONCILE).get(timeout=60) if a["job_id"] == job_id]
+    finally:
+        rd.hdel("unacked", tag)
+        app.close()
+    assert len(actions) == 1 and actions[0]["from_stage"] == "aerial_sfm" and not actions[0]["error"], actions
+    job = wait_for_job(c, h, job_id, 180)
+    assert job["status"] == "succeeded", (job, service.worker.text()[-3000:])
+    live_node = _node_name(service.worker)
+    assert [(st["stage"], st["status"], st["node"]) for st in job["stages"]] == [
+        ("aerial_sfm", "failed", dead_node),
+        ("aerial_sfm", "succeeded", live_node),
+    ]
+    assert job["stages"][1]["heartbeat_at"] is not None

@@ -38,7 +38,7 @@ from typing import Any
 import sqlalchemy as sa
 
 from shared.db import crud
-from shared.db.models import TERMINAL_JOB_STATUSES, JobStatus, StageRun, StageStatus
+from shared.db.models import TERMINAL_JOB_STATUSES, JobStatus, StageRun, StageStatus, utcnow
 from shared.db.session import get_engine, session_scope
 from shared.job_options import STAGES, JobOptions
 from shared.storage import Storage, StorageKeyError, get_storage
@@ -230,9 +230,10 @@ def _live_row(session: Any, job_id: str) -> Any:
     return row
 
 
-def _open_run(session: Any, row: Any, stage: str, worker: str | None) -> StageRun:
+def _open_run(session: Any, row: Any, stage: str, worker: str | None, node: str | None = None) -> StageRun:
     """The stage run of this attempt: the running one started by the match_views fan-out (or by a
-    worker that was lost) is reused; runs of earlier attempts left running are closed."""
+    worker that was lost) is reused; runs of earlier attempts left running are closed. It records the
+    worker, its Celery node and a first heartbeat."""
     open_runs = list(
         session.scalars(
             sa.select(StageRun)
@@ -249,16 +250,34 @@ def _open_run(session: Any, row: Any, stage: str, worker: str | None) -> StageRu
     if current is not None:
         current.worker = worker or current.worker
         crud.update_job_progress(session, row, row.progress, stage)
-        return current
-    return crud.start_stage(session, row, stage, worker=worker)
+    else:
+        current = crud.start_stage(session, row, stage, worker=worker)
+    current.node = node or current.node
+    current.heartbeat_at = utcnow()
+    session.flush()
+    return current
 
 
-def _begin(ctx: Context, job_id: str, stage: str, worker: str | None, open_run: bool = True) -> JobInfo:
+def heartbeat(job_id: str, stage: str, *, settings: Any) -> int:
+    """Refresh the heartbeat of the job's running runs of stage (called periodically while a task works
+    on it); returns how many rows it touched."""
+    with get_context(settings).session() as s:
+        r = s.execute(
+            sa.update(StageRun)
+            .where(StageRun.job_id == job_id, StageRun.stage == stage, StageRun.status == StageStatus.running)
+            .values(heartbeat_at=utcnow())
+        )
+        return int(r.rowcount or 0)
+
+
+def _begin(
+    ctx: Context, job_id: str, stage: str, worker: str | None, open_run: bool = True, node: str | None = None
+) -> JobInfo:
     with ctx.session() as s:
         row = _live_row(s, job_id)
         info = _info(row)
         if open_run:
-            info.run_id = _open_run(s, row, stage, worker or worker_name()).id
+            info.run_id = _open_run(s, row, stage, worker or worker_name(), node).id
     return info
 
 
@@ -301,6 +320,12 @@ class ProgressReporter:
         try:
             with self.ctx.session() as s:
                 crud.update_job_progress(s, self.info.id, self.overall(stage, fraction), stage)
+                if self.info.run_id is not None:  # a progress report is a heartbeat too
+                    s.execute(
+                        sa.update(StageRun)
+                        .where(StageRun.id == self.info.run_id)
+                        .values(heartbeat_at=utcnow())
+                    )
         except crud.InvalidTransitionError as e:
             raise JobStopped(str(e)) from None
         except crud.NotFoundError as e:
@@ -373,14 +398,17 @@ def _record_artifacts(session: Any, info: JobInfo, job: Any, stage: str) -> int:
 
 
 # -- units ---------------------------------------------------------------------------------------
-def execute_stage(job_id: str, stage: str, *, settings: Any, worker: str | None = None) -> dict:
-    """Run one stage of a job (skipped when up to date); returns {stage, skipped, seconds, summary}."""
+def execute_stage(
+    job_id: str, stage: str, *, settings: Any, worker: str | None = None, node: str | None = None
+) -> dict:
+    """Run one stage of a job (skipped when up to date); returns {stage, skipped, seconds, summary}.
+    node: the Celery node name, recorded on the stage run for the reconciler's liveness check."""
     from services import pipeline
 
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; stages are {list(STAGES)}")
     ctx = get_context(settings)
-    info = _begin(ctx, job_id, stage, worker)
+    info = _begin(ctx, job_id, stage, worker, node=node)
     try:
         job = _materialize(ctx, info)
         report = ProgressReporter(ctx, info)
@@ -393,7 +421,10 @@ def execute_stage(job_id: str, stage: str, *, settings: Any, worker: str | None 
             run = s.get(StageRun, info.run_id)
             status = StageStatus.skipped if marker.get("skipped") else StageStatus.succeeded
             output_key = jobsync.files_key(info.prefix, f"{stage_dir(stage)}/")
-            crud.finish_stage(s, run, status, output_key=output_key)
+            if run is not None and run.status == StageStatus.running:
+                crud.finish_stage(s, run, status, output_key=output_key)
+            else:  # the reconciler gave this run up (its node looked dead) and dispatched it again
+                log.warning("job %s: stage run %s of %s was closed meanwhile", job_id, info.run_id, stage)
         log.info(
             "job %s: stage %s %s in %.1f s (%d artifacts): %s",
             job_id, stage, status.value, float(marker.get("seconds") or 0), n, marker.get("summary"),
@@ -416,14 +447,16 @@ def stage_dir(stage: str) -> str:
     return STAGE_DIRS.get(stage, [stage])[0]
 
 
-def prepare_match_views(job_id: str, *, settings: Any, worker: str | None = None) -> list[str]:
+def prepare_match_views(
+    job_id: str, *, settings: Any, worker: str | None = None, node: str | None = None
+) -> list[str]:
     """Start of the match_views fan-out: open its stage run, extract the features of the candidate aerial
     and ground images once (pushed, so that every view task reuses them), return the view names (none
     when the stage is up to date)."""
     from services import pipeline
 
     ctx = get_context(settings)
-    info = _begin(ctx, job_id, "match_views", worker)
+    info = _begin(ctx, job_id, "match_views", worker, node=node)
     try:
         job = _materialize(ctx, info)
         report = ProgressReporter(ctx, info)
@@ -555,6 +588,7 @@ __all__ = [
     "execute_stage",
     "fail",
     "finalize",
+    "heartbeat",
     "is_transient",
     "prepare_match_views",
 ]

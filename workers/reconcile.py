@@ -11,6 +11,14 @@ outputs are up to date is skipped), so dispatching a job twice costs time, never
 - running -> submit(job_id, from_stage=job.current_stage);
 - queued  -> submit(job_id) (without a liveness probe: only when no root task id was recorded).
 
+A worker node that dies as a whole (machine lost, container killed) leaves the messages it had reserved
+in the broker's `unacked` hash until the visibility timeout (hours), so RedisLiveness still counts its
+jobs as live. `nodes` (NodeCheck, the Celery deployment) catches that early: a running stage run whose
+heartbeat (refreshed every 20 s by the task working on it, workers/tasks.py) is older than
+heartbeat_timeout_s, and whose Celery node does not answer a ping, or whose heartbeat is older than
+heartbeat_dead_s whatever the node says, is closed as failed ("abandoned") and its job dispatched again
+from that stage, unless a task of the job runs or a message of it waits in a queue (`active`).
+
 `reconcile` returns the actions it took (and logs them), so that it can be tested on database rows with
 a recording dispatcher.
 """
@@ -28,7 +36,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from shared.db import crud
-from shared.db.models import Job, JobStatus, StageRun, utcnow
+from shared.db.models import Job, JobStatus, StageRun, StageStatus, utcnow
 from shared.job_options import JobOptions
 
 log = logging.getLogger("midview.workers.reconcile")
@@ -69,6 +77,63 @@ def _aware(t: datetime) -> datetime:
 LiveProbe = Callable[[str], bool] | Container[str] | None
 
 
+@dataclass
+class NodeCheck:
+    """How the reconciler tells that the worker node running a stage died (see the module)."""
+
+    ping: Callable[[list[str]], set[str]]  # the nodes among these that answer
+    heartbeat_timeout_s: float = 120.0
+    heartbeat_dead_s: float = 1800.0
+    active: Container[str] = frozenset()  # jobs with a running task or a message waiting in a queue
+
+
+def celery_ping(app: Any, timeout_s: float = 2.0) -> Callable[[list[str]], set[str]]:
+    """NodeCheck.ping over Celery's remote control: the names of the nodes that answer."""
+
+    def ping(nodes: list[str]) -> set[str]:
+        replies = app.control.ping(destination=list(nodes), timeout=timeout_s) or []
+        return {name for reply in replies for name in reply}
+
+    return ping
+
+
+def _stale_runs(session: Session, now: datetime, timeout_s: float) -> list[StageRun]:
+    """Running stage runs of running jobs whose last heartbeat (or start) is older than timeout_s."""
+    cutoff = now - timedelta(seconds=float(timeout_s))
+    last = sa.func.coalesce(StageRun.heartbeat_at, StageRun.started_at)
+    stmt = (
+        sa.select(StageRun)
+        .join(Job, Job.id == StageRun.job_id)
+        .where(Job.status == JobStatus.running, StageRun.status == StageStatus.running, last < cutoff)
+        .order_by(StageRun.started_at)
+    )
+    return list(session.scalars(stmt))
+
+
+def lost_runs(session: Session, now: datetime, nodes: NodeCheck) -> dict[str, tuple[StageRun, str]]:
+    """job id -> (a running stage run whose worker is lost, why), see the module."""
+    stale = [r for r in _stale_runs(session, now, nodes.heartbeat_timeout_s) if r.job_id not in nodes.active]
+    names = sorted({r.node for r in stale if r.node})
+    answering: set[str] | None = set()
+    if names:
+        try:
+            answering = nodes.ping(names)
+        except Exception:  # no verdict on the nodes this time; very old heartbeats still count
+            log.exception("could not ping the worker nodes %s", names)
+            answering = None
+    out: dict[str, tuple[StageRun, str]] = {}
+    for run in stale:
+        age = (now - _aware(run.heartbeat_at or run.started_at)).total_seconds()
+        if age >= nodes.heartbeat_dead_s:
+            why = f"stage {run.stage}: no heartbeat for {age:.0f} s"
+        elif run.node and answering is not None and run.node not in answering:
+            why = f"stage {run.stage}: no heartbeat for {age:.0f} s and its node {run.node} does not answer"
+        else:
+            continue
+        out.setdefault(run.job_id, (run, why))
+    return out
+
+
 def _probe(is_live: LiveProbe) -> Callable[[str], bool | None]:
     if is_live is None:
         return lambda job_id: None
@@ -85,12 +150,15 @@ def reconcile(
     *,
     is_live: LiveProbe = None,
     limit: int = 100,
+    nodes: NodeCheck | None = None,
 ) -> list[Action]:
-    """Dispatch again the queued and running jobs that stalled (see the module); returns the actions.
-    The caller commits (new root task ids are written to the job rows)."""
+    """Dispatch again the queued and running jobs that stalled, and the running jobs whose stage lost
+    its worker node when `nodes` is given (see the module); returns the actions. The caller commits (new
+    root task ids and closed stage runs are written)."""
     now = now or utcnow()
     cutoff = now - timedelta(seconds=float(stall_timeout_s))
     live = _probe(is_live)
+    lost = lost_runs(session, now, nodes) if nodes is not None else {}
     stmt = (
         sa.select(Job)
         .where(Job.status.in_([JobStatus.queued, JobStatus.running]))
@@ -100,6 +168,13 @@ def reconcile(
     )
     actions: list[Action] = []
     for job in session.scalars(stmt):
+        stages = JobOptions.model_validate(job.options or {}).stages
+        if job.id in lost:
+            run, why = lost[job.id]
+            crud.finish_stage(session, run, StageStatus.failed, error=f"abandoned: {why}")
+            from_stage = run.stage if run.stage in stages else None
+            actions.append(_dispatch(session, dispatcher, job, from_stage, f"worker lost: {why}"))
+            continue
         last = last_activity(session, job)
         if last > cutoff:
             continue
@@ -112,28 +187,46 @@ def reconcile(
                 continue  # its first task may still wait in a queue: without a probe we cannot tell
             from_stage, reason = None, f"queued for {idle:.0f} s and not in any queue"
         else:
-            stages = JobOptions.model_validate(job.options or {}).stages
             from_stage = job.current_stage if job.current_stage in stages else None
             reason = f"running, no sign of life for {idle:.0f} s and no live task"
-        action = Action(job.id, job.status.value, from_stage, reason)
-        try:
-            task_id = dispatcher.submit(job.id, from_stage)
-            if isinstance(task_id, str) and task_id:
-                action.task_id = task_id
-                crud.update_job_results(session, job, celery_root_id=task_id)
-            log.warning("job %s %s: dispatched again from %s", job.id, reason, from_stage or "the start")
-        except Exception as e:
-            action.error = f"{type(e).__name__}: {e}"
-            log.exception("job %s %s: dispatching it again failed", job.id, reason)
-        actions.append(action)
+        actions.append(_dispatch(session, dispatcher, job, from_stage, reason))
     session.flush()
     return actions
+
+
+def _dispatch(session: Session, dispatcher: Any, job: Job, from_stage: str | None, reason: str) -> Action:
+    """Submit the job again from from_stage; the action taken (with the error when the dispatch failed,
+    to be tried again at the next pass)."""
+    action = Action(job.id, job.status.value, from_stage, reason)
+    try:
+        task_id = dispatcher.submit(job.id, from_stage)
+        if isinstance(task_id, str) and task_id:
+            action.task_id = task_id
+            crud.update_job_results(session, job, celery_root_id=task_id)
+        log.warning("job %s %s: dispatched again from %s", job.id, reason, from_stage or "the start")
+    except Exception as e:
+        action.error = f"{type(e).__name__}: {e}"
+        log.exception("job %s %s: dispatching it again failed", job.id, reason)
+    return action
+
+
+@dataclass
+class LiveParts:
+    """Job ids by where RedisLiveness saw them."""
+
+    running: set[str]  # a task of the job runs (its heartbeat key exists)
+    queued: set[str]  # a message of the job waits in a queue
+    reserved: set[str]  # a message of the job is reserved by a worker (unacked), maybe a dead one
+
+    def all(self) -> set[str]:
+        return self.running | self.queued | self.reserved
 
 
 class RedisLiveness:
     """Which jobs Celery is working on, from Redis: a task of the job running (heartbeat key, see
     workers/tasks.py), or a message naming the job waiting in a queue or reserved by a worker (the Redis
-    transport's `unacked` hash). `snapshot()` reads it all once: a set of job ids."""
+    transport's `unacked` hash). `snapshot()` reads it all once: a set of job ids; `parts()` keeps the
+    three apart."""
 
     def __init__(self, redis: Any, queues: tuple[str, ...] | None = None, priority_steps: int = 10):
         from workers.celery_app import ALIVE_PATTERN, QUEUES
@@ -147,7 +240,7 @@ class RedisLiveness:
         sep = "\x06\x16"  # kombu's priority queue suffix
         return [q for name in self.queues for q in (name, *(f"{name}{sep}{p}" for p in range(1, 10)))]
 
-    def snapshot(self) -> set[str]:
+    def _running(self) -> set[str]:
         import json
 
         live: set[str] = set()
@@ -158,13 +251,20 @@ class RedisLiveness:
                     live.add(str(json.loads(raw)["job"]))
                 except (ValueError, KeyError, TypeError):
                     continue
+        return live
+
+    @staticmethod
+    def _ids(blobs: list[bytes]) -> set[str]:
+        return {m.decode() for blob in blobs for m in _UUID.findall(blob)}  # task ids too: harmless
+
+    def parts(self) -> LiveParts:
         blobs: list[bytes] = []
         for q in self._queue_keys():
             blobs += self.redis.lrange(q, 0, -1)
-        blobs += self.redis.hvals("unacked")
-        for blob in blobs:
-            live.update(m.decode() for m in _UUID.findall(blob))  # task ids too: harmless
-        return live
+        return LiveParts(self._running(), self._ids(blobs), self._ids(self.redis.hvals("unacked")))
+
+    def snapshot(self) -> set[str]:
+        return self.parts().all()
 
     def __call__(self, job_id: str) -> bool:
         return job_id in self.snapshot()

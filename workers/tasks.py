@@ -15,7 +15,9 @@ runs, nothing is recorded as failed.
 
 While a task of a job runs, its id is in the Redis set `midview:job:{job}:tasks` (the dispatcher revokes
 them on cancel) and `midview:task:{id}:alive` holds {job, task, args, pid, hostname}, refreshed every
-HEARTBEAT_S with a TTL of ALIVE_TTL_S: the reconciler's proof that the job is being worked on.
+HEARTBEAT_S with a TTL of ALIVE_TTL_S: the reconciler's proof that the job is being worked on. Every
+HEARTBEAT_S the task also refreshes `heartbeat_at` of its stage run in the database; the run records the
+task's Celery node, which the reconciler pings when that heartbeat gets old (a worker node that died).
 """
 
 from __future__ import annotations
@@ -81,17 +83,25 @@ def reset_clients() -> None:
     _redis, _redis_pid = None, None
 
 
+def _db_heartbeat(job_id: str, stage: str | None) -> None:
+    """Refresh the stage run's heartbeat in the database; trouble is logged, never fatal."""
+    if stage is None:
+        return
+    try:
+        execute.heartbeat(job_id, stage, settings=get_settings())
+    except Exception as e:
+        log.warning("database heartbeat of job %s stage %s: %s", job_id, stage, e)
+
+
 @contextmanager
-def tracked(task: Any, job_id: str) -> Iterator[None]:
-    """Register the running task in Redis (task set of the job, heartbeat key) for its duration; Redis
-    trouble here is logged, never fatal."""
+def tracked(task: Any, job_id: str, stage: str | None = None) -> Iterator[None]:
+    """Register the running task in Redis (task set of the job, heartbeat key) for its duration, and
+    keep the heartbeat of its stage run fresh in the database; Redis or database trouble here is logged,
+    never fatal."""
     import redis
 
     r = redis_client()
     tid = task.request.id
-    if r is None or not tid:
-        yield
-        return
     info = json.dumps(
         {
             "job": job_id,
@@ -102,39 +112,44 @@ def tracked(task: Any, job_id: str) -> Iterator[None]:
             "started": time.time(),
         }
     )
+    in_redis = r is not None and bool(tid)
     stop = threading.Event()
 
     def heartbeat() -> None:
         while not stop.wait(HEARTBEAT_S):
-            try:
-                r.set(alive_key(tid), info, ex=ALIVE_TTL_S)
-            except redis.RedisError as e:
-                log.warning("heartbeat of task %s: %s", tid, e)
+            if in_redis:
+                try:
+                    r.set(alive_key(tid), info, ex=ALIVE_TTL_S)
+                except redis.RedisError as e:
+                    log.warning("heartbeat of task %s: %s", tid, e)
+            _db_heartbeat(job_id, stage)
 
-    try:
-        pipe = r.pipeline()
-        pipe.sadd(tasks_key(job_id), tid).expire(tasks_key(job_id), TASKS_TTL_S)
-        pipe.set(alive_key(tid), info, ex=ALIVE_TTL_S)
-        pipe.execute()
-    except redis.RedisError as e:
-        log.warning("could not register task %s of job %s: %s", tid, job_id, e)
+    if in_redis:
+        try:
+            pipe = r.pipeline()
+            pipe.sadd(tasks_key(job_id), tid).expire(tasks_key(job_id), TASKS_TTL_S)
+            pipe.set(alive_key(tid), info, ex=ALIVE_TTL_S)
+            pipe.execute()
+        except redis.RedisError as e:
+            log.warning("could not register task %s of job %s: %s", tid, job_id, e)
     beat = threading.Thread(target=heartbeat, name=f"heartbeat-{tid}", daemon=True)
     beat.start()
     try:
         yield
     finally:
         stop.set()
-        try:
-            r.pipeline().srem(tasks_key(job_id), tid).delete(alive_key(tid)).execute()
-        except redis.RedisError as e:
-            log.warning("could not unregister task %s of job %s: %s", tid, job_id, e)
+        if in_redis:
+            try:
+                r.pipeline().srem(tasks_key(job_id), tid).delete(alive_key(tid)).execute()
+            except redis.RedisError as e:
+                log.warning("could not unregister task %s of job %s: %s", tid, job_id, e)
 
 
 # -- error policy --------------------------------------------------------------------------------
 def _guarded(task: Any, job_id: str, stage: str | None, fn: Callable[[Any], Any]) -> Any:
     settings = get_settings()
     try:
-        with tracked(task, job_id):
+        with tracked(task, job_id, stage):
             return fn(settings)
     except execute.JobStopped as e:
         log.info("job %s: %s stopped: %s", job_id, task.name, e)
@@ -180,9 +195,12 @@ def views_canvas(job_id: str, views: list[str], after: list[str]) -> Any:
 @app.task(bind=True, name=RUN_STAGE)
 def run_stage(self: Any, job_id: str, stage: str) -> dict:
     """One pipeline stage of a job."""
-    worker = f"{self.request.hostname}:{os.getpid()}"
+    worker, node = f"{self.request.hostname}:{os.getpid()}", self.request.hostname
     return _guarded(
-        self, job_id, stage, lambda s: execute.execute_stage(job_id, stage, settings=s, worker=worker)
+        self,
+        job_id,
+        stage,
+        lambda s: execute.execute_stage(job_id, stage, settings=s, worker=worker, node=node),
     )
 
 
@@ -202,9 +220,12 @@ def match_view(self: Any, job_id: str, view: str) -> dict:
 def fan_out_views(self: Any, job_id: str, after: list[str]) -> Any:
     """Prepare match_views (features of the candidate images, once), then replace this task by the
     chord of the views followed by the stages `after` match_views and finalize."""
-    worker = f"{self.request.hostname}:{os.getpid()}"
+    worker, node = f"{self.request.hostname}:{os.getpid()}", self.request.hostname
     views = _guarded(
-        self, job_id, "match_views", lambda s: execute.prepare_match_views(job_id, settings=s, worker=worker)
+        self,
+        job_id,
+        "match_views",
+        lambda s: execute.prepare_match_views(job_id, settings=s, worker=worker, node=node),
     )
     log.info("job %s: fanning out %d views, then %s", job_id, len(views), ["match_views", *after])
     raise self.replace(views_canvas(job_id, list(views), list(after)))
@@ -218,19 +239,30 @@ def finalize(self: Any, job_id: str) -> dict:
 
 @app.task(name=RECONCILE)
 def reconcile() -> list[dict]:
-    """Re-dispatch jobs that stalled (see workers.reconcile)."""
+    """Re-dispatch jobs that stalled, or whose running stage lost its worker node (see workers.reconcile)."""
     from shared.db.models import utcnow
     from shared.db.session import get_engine, session_scope
     from workers.dispatch import CeleryDispatcher
-    from workers.reconcile import RedisLiveness
+    from workers.reconcile import NodeCheck, RedisLiveness, celery_ping
     from workers.reconcile import reconcile as run_reconcile
 
     settings = get_settings()
     r = redis_client()
-    live = RedisLiveness(r).snapshot() if r is not None else None
+    parts = RedisLiveness(r).parts() if r is not None else None
+    nodes = NodeCheck(
+        ping=celery_ping(app),
+        heartbeat_timeout_s=settings.heartbeat_timeout_s,
+        heartbeat_dead_s=settings.heartbeat_dead_s,
+        active=parts.running | parts.queued if parts is not None else frozenset(),
+    )
     with session_scope(get_engine(settings.database_url)) as session:
         actions = run_reconcile(
-            session, CeleryDispatcher(settings, app=app), utcnow(), settings.stall_timeout_s, is_live=live
+            session,
+            CeleryDispatcher(settings, app=app),
+            utcnow(),
+            settings.stall_timeout_s,
+            is_live=parts.all() if parts is not None else None,
+            nodes=nodes,
         )
     return [a.as_dict() for a in actions]
 

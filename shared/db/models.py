@@ -284,6 +284,8 @@ class StageRun(Base):
     )
     attempt: Mapped[int] = mapped_column(default=1)
     worker: Mapped[str | None] = mapped_column(sa.String(255))
+    node: Mapped[str | None] = mapped_column(sa.String(255))  # Celery node name (NAME@HOST) that runs it
+    heartbeat_at: Mapped[datetime | None]  # refreshed while a task works on it (workers/tasks.py)
     started_at: Mapped[datetime] = _created()
     finished_at: Mapped[datetime | None]
     duration_s: Mapped[float | None]
