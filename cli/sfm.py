@@ -47,6 +47,18 @@ def sfm(
     exhaustive_max: int = typer.Option(
         None, "--exhaustive-max", help="match exhaustively up to this many images"
     ),
+    pairs: str = typer.Option(
+        None, "--pairs", help="image pairs: auto, exhaustive, spatial or footprint (default: auto)"
+    ),
+    ground_height: float = typer.Option(
+        None, "--ground-height", help="footprint pairs: terrain height (ellipsoidal, metres)"
+    ),
+    height_above_ground: float = typer.Option(
+        None,
+        "--height-above-ground",
+        help="footprint pairs: flight height above the terrain (metres); default: the POS's relative "
+        "altitude (DJI XMP)",
+    ),
     no_priors: bool = typer.Option(
         False, "--no-priors", help="do not use POS positions in bundle adjustment"
     ),
@@ -57,7 +69,8 @@ def sfm(
         "default: the POS CRS unless it is WGS84 latitude/longitude",
     ),
 ) -> None:
-    """Aerial SfM: SIFT (or ALIKED) features, POS-guided matching, incremental mapping, georeferencing.
+    """Aerial SfM: SIFT (or ALIKED) features, POS-guided matching (exhaustive, spatial neighbours or
+    footprint overlap), incremental mapping, georeferencing.
 
     Writes OUT/sparse (COLMAP model in the local ENU frame), OUT/georef.json, OUT/report.json,
     OUT/cameras.geojson (WGS84 camera positions and footprints) and, in the output CRS, OUT/cameras.csv
@@ -74,8 +87,16 @@ def sfm(
     conf = {**confs[features]}
     if max_image_size is not None:
         conf["features"] = {**conf["features"], "max_image_size": max_image_size}
+    matching = {**conf["matching"], "footprint": {**conf["matching"]["footprint"]}}
     if exhaustive_max is not None:
-        conf["matching"] = {**conf["matching"], "exhaustive_max": exhaustive_max}
+        matching["exhaustive_max"] = exhaustive_max
+    if pairs is not None:
+        matching["pairs"] = pairs
+    if ground_height is not None:
+        matching["footprint"]["ground_h"] = ground_height
+    if height_above_ground is not None:
+        matching["footprint"]["height_above_ground"] = height_above_ground
+    conf["matching"] = matching
     if no_priors:
         conf["mapping"] = {**conf["mapping"], "use_prior_position": False}
     if out_crs is not None:

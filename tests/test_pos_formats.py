@@ -255,6 +255,7 @@ def test_exif_written_with_pil(tmp_path):
     assert list(image_paths(tmp_path / "flat")) == ["aerial/IMG_1.JPG"]
     (rec,) = read_pos(tmp_path / "flat")
     assert rec.name == "aerial/IMG_1.JPG" and rec.h == pytest.approx(58.25)
+    assert rec.rel_alt == pytest.approx(40.1) and rec.crs == "EPSG:4326"  # the take-off 18.15 m up
     assert (rec.std_xy, rec.std_z) == (0.03, 0.05)
     np.testing.assert_allclose(rec.R_world_from_cam, ypr_to_matrix(-30.5, -90, 0), atol=1e-12)
     (rel,) = read_pos_exif(tmp_path / "flat", altitude="relative", takeoff_h=100.0)

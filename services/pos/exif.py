@@ -215,7 +215,9 @@ def record_from_exif(
     std_xy = std_z = None
     if data.rtk_std is not None:
         std_xy, std_z = max(data.rtk_std[0], data.rtk_std[1]), data.rtk_std[2]
-    return PosRecord(name, float(lat), float(lon), float(h), R, std_xy, std_z, crs=EXIF_CRS)  # type: ignore[arg-type]
+    return PosRecord(
+        name, float(lat), float(lon), float(h), R, std_xy, std_z, crs=EXIF_CRS, rel_alt=data.rel_alt
+    )  # type: ignore[arg-type]
 
 
 def read_pos_exif(

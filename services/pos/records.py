@@ -31,6 +31,7 @@ class PosRecord:
     std_z: float | None = None  # metres
     std_att: float | None = None  # degrees
     crs: str | None = None  # the CRS of the POS source (positions here are WGS84 whatever it was)
+    rel_alt: float | None = None  # metres above the take-off point (DJI XMP RelativeAltitude)
 
     @property
     def image_set(self) -> str:

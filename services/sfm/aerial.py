@@ -9,8 +9,10 @@ Steps (each a `shared.logging.stage`), all in pycolmap 4 on one COLMAP database:
    database, one camera for the set (intrinsics prior from cameras.json, else EXIF 35 mm focal length),
    or ALIKED (services.features) imported into the database. The POS positions go in as pose priors in
    a local ENU frame (LocalFrame at the mean POS position), with their covariance.
-3. matching: exhaustive up to `exhaustive_max` images, else the spatial neighbours of the pose priors;
-   geometric verification by pycolmap (LightGlue + pycolmap verification for ALIKED).
+3. matching: pairs from the POS (pairing.py, `matching.pairs`): exhaustive, spatial neighbours, or
+   overlapping ground footprints; "auto" matches up to `exhaustive_max` images exhaustively, else by
+   footprints when attitudes and the terrain height are known, else by spatial neighbours. Geometric
+   verification by pycolmap (LightGlue + pycolmap verification for ALIKED).
 4. mapping: pycolmap incremental mapping; with `use_prior_position` its bundle adjustment includes the
    POS positions (robust loss), so the models come out in the ENU frame. The largest model is kept.
 5. georef: a robust similarity from its camera centres to the POS positions (georef.py), applied to
@@ -53,6 +55,7 @@ from shared.logging import stage
 
 from . import export as export_mod
 from . import georef as georef_mod
+from . import pairing as pairing_mod
 from .report import build_report, write_report
 
 logger = logging.getLogger("midview.sfm")
@@ -60,9 +63,7 @@ logger = logging.getLogger("midview.sfm")
 _BASE: dict[str, Any] = {
     "features": {"type": "sift", "max_image_size": 1600, "max_num_features": 8192, "chunk": 4},
     "matching": {
-        "exhaustive_max": 50,  # images; more use spatial neighbours of the POS
-        "num_neighbors": 20,
-        "max_distance_m": 1.0e6,
+        **pairing_mod.default_conf,  # pairs: auto | exhaustive | spatial | footprint, and their settings
         "min_num_inliers": 15,
         "max_num_matches": 32768,
     },
@@ -275,42 +276,47 @@ def write_pose_priors(
     return n
 
 
-def match_sift(conf: dict, db_path: Path, n_images: int) -> str:
-    """Exhaustive or spatial SIFT matching with pycolmap's geometric verification; returns the method."""
+def match_sift(conf: dict, db_path: Path, mode: str, pairs_path: Path) -> None:
+    """SIFT matching with pycolmap's geometric verification: exhaustive, or the pairs of `pairs_path`."""
     mconf = conf["matching"]
     mopts = pycolmap.FeatureMatchingOptions()
     mopts.num_threads = _num_threads()
     mopts.max_num_matches = int(mconf["max_num_matches"])
     vopts = pycolmap.TwoViewGeometryOptions()
     vopts.min_num_inliers = int(mconf["min_num_inliers"])
-    if n_images <= mconf["exhaustive_max"]:
+    if mode == "exhaustive":
         pycolmap.match_exhaustive(db_path, matching_options=mopts, verification_options=vopts)
-        return "exhaustive"
-    popts = pycolmap.SpatialPairingOptions()
-    popts.ignore_z = False
-    popts.max_num_neighbors = int(mconf["num_neighbors"])
-    popts.max_distance = float(mconf["max_distance_m"])
-    pycolmap.match_spatial(db_path, matching_options=mopts, pairing_options=popts, verification_options=vopts)
-    return f"spatial ({mconf['num_neighbors']} neighbours)"
+    else:
+        popts = pycolmap.ImportedPairingOptions()
+        popts.match_list_path = pairs_path
+        pycolmap.match_image_pairs(
+            db_path, matching_options=mopts, pairing_options=popts, verification_options=vopts
+        )
 
 
-def candidate_pairs(names: list[str], positions: np.ndarray, conf: dict) -> list[tuple[int, int]]:
-    """Index pairs: all, or each image with its `num_neighbors` nearest POS positions."""
-    n = len(names)
-    if n <= conf["exhaustive_max"]:
-        return [(i, j) for i in range(n) for j in range(i + 1, n)]
-    d = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
-    pairs = set()
-    for i in range(n):
-        for j in np.argsort(d[i])[1 : conf["num_neighbors"] + 1]:
-            if d[i, j] <= conf["max_distance_m"]:
-                pairs.add((min(i, int(j)), max(i, int(j))))
-    return sorted(pairs)
+def camera_priors(
+    names: list[str], camera: Camera | None, sizes: dict[str, tuple[int, int]], root: Path
+) -> dict[str, Camera]:
+    """Intrinsics prior per image for the footprints: the set's camera, else COLMAP's default prior
+    (focal length 1.2 x the longer side, principal point at the centre)."""
+    out = {}
+    for n in names:
+        if camera is not None:
+            out[n] = camera
+            continue
+        w, h = sizes.get(n) or check_image(root / n)
+        out[n] = Camera("SIMPLE_PINHOLE", w, h, [1.2 * max(w, h), w / 2, h / 2])
+    return out
 
 
 def features_aliked(
-    conf: dict, db_path: Path, root: Path, names: list[str], camera: Camera | None, positions: np.ndarray
-) -> str:
+    conf: dict,
+    db_path: Path,
+    root: Path,
+    names: list[str],
+    camera: Camera | None,
+    name_pairs: list[tuple[str, str]],
+) -> None:
     """ALIKED (services.features) + LightGlue into the database, then pycolmap's verification."""
     from services import features as features_mod
     from services.matching.direct import match_features
@@ -338,16 +344,15 @@ def features_aliked(
             db.write_frame(frame)
             db.write_keypoints(image.image_id, np.ascontiguousarray(feats[n]["keypoints"], np.float32))
             ids.append(image.image_id)
-        pairs = candidate_pairs(names, positions, conf["matching"])
-        for i, j in tqdm(pairs, desc="LightGlue", unit="pair"):
-            m, _ = match_features(feats[names[i]], feats[names[j]], conf["matching"]["matcher"])
-            db.write_matches(ids[i], ids[j], np.ascontiguousarray(m, np.uint32).reshape(-1, 2))
+        id_of = dict(zip(names, ids, strict=True))
+        for a, b in tqdm(name_pairs, desc="LightGlue", unit="pair"):
+            m, _ = match_features(feats[a], feats[b], conf["matching"]["matcher"])
+            db.write_matches(id_of[a], id_of[b], np.ascontiguousarray(m, np.uint32).reshape(-1, 2))
     finally:
         db.close()
     vopts = pycolmap.TwoViewGeometryOptions()
     vopts.min_num_inliers = int(conf["matching"]["min_num_inliers"])
     pycolmap.geometric_verification(db_path, two_view_geometry_options=vopts)
-    return f"lightglue {'exhaustive' if len(names) <= conf['matching']['exhaustive_max'] else 'spatial'}"
 
 
 def run_mapping(
@@ -455,7 +460,11 @@ def main(
         if not single_camera:
             logger.warning("the images differ in size: one camera per image, priors from their EXIF")
             camera, cam_source = None, "exif per image"
+        cams_by_name = camera_priors(names, camera, sizes, root)
+        pair_mode, name_pairs = pairing_mod.get_pairs(conf["matching"], names, pos, frame, cams_by_name)
+        pairs_path = pairing_mod.write_pairs(out_dir / "pairs.txt", name_pairs)
         timings["images"] = time.perf_counter() - t0
+        logger.info("%s pairing: %d pairs -> %s", pair_mode, len(name_pairs), pairs_path)
         logger.info(
             "%d %s images under %s, POS from %s, camera prior from %s; ENU origin %.7f %.7f %.2f",
             len(names),
@@ -471,7 +480,7 @@ def main(
     db_path = out_dir / "database.db"
     for p in (db_path, db_path.with_name(db_path.name + "-wal"), db_path.with_name(db_path.name + "-shm")):
         p.unlink(missing_ok=True)
-    positions = np.array([frame.from_wgs84(pos[n].lat, pos[n].lon, pos[n].h)[0] for n in names])
+    pairing = f"{pair_mode} ({len(name_pairs)} pairs)"
     std_xy, std_z = conf["pos"]["default_std_xy"], conf["pos"]["default_std_z"]
     ftype = conf["features"]["type"]
     with colmap_log_level(conf["colmap_log_level"]):
@@ -489,13 +498,13 @@ def main(
                 )
             with stage("sfm:matching", logger):
                 t0 = time.perf_counter()
-                pairing = match_sift(conf, db_path, len(names))
+                match_sift(conf, db_path, pair_mode, pairs_path)
                 timings["matching"] = time.perf_counter() - t0
                 dbstats = _log_matching(db_path, conf, pairing, timings["matching"])
         elif ftype == "aliked":
             with stage("sfm:features+matching", logger):
                 t0 = time.perf_counter()
-                pairing = features_aliked(conf, db_path, root, names, camera, positions)
+                features_aliked(conf, db_path, root, names, camera, name_pairs)
                 write_pose_priors(db_path, pos, frame, std_xy, std_z)
                 timings["features"] = timings["matching"] = (time.perf_counter() - t0) / 2
                 dbstats = _log_matching(db_path, conf, pairing, 2 * timings["matching"])
