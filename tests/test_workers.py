@@ -578,12 +578,41 @@ def test_worker_command_line():
         worker_argv("gpu,video")
 
 
+def _running_task(rd, job_id: str, stage: str, timeout_s: float = 30.0) -> tuple[str, int]:
+    """(task id, pid of the pool process) of the job's task running stage, from its Redis heartbeat key."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for key in rd.scan_iter("midview:task:*:alive"):
+            info = json.loads(rd.get(key) or "{}")
+            if info.get("job") == job_id and stage in info.get("args", []):
+                return key.decode().split(":")[2], int(info["pid"])
+        time.sleep(0.2)
+    raise AssertionError(f"no running {stage} task of job {job_id} in Redis")
+
+
+def _process_gone(pid: int, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.1)
+    return False
+
+
 def test_celery_cancel_stops_the_job(service, tiny_survey):
-    """Cancel while train_splat runs: the running task is terminated (revoke), the chain stops, the job
-    stays cancelled, and the worker goes on serving."""
+    """Cancel while train_splat runs: the running task is terminated (revoke): its pool process is
+    killed and replaced, its state is REVOKED, the stage reports no more progress; the chain stops, the
+    job stays cancelled, and the worker goes on serving."""
+    import redis
+    from celery.result import AsyncResult
     from conftest import upload_survey, wait_for_job
 
+    from workers.celery_app import make_app
+
     c, h = service.client, service.tenant.headers
+    rd = redis.Redis.from_url(service.app.state.settings.broker_url)
     pid = upload_survey(c, service.tenant, tiny_survey, service.app.state.storage)
     opts = {
         "stages": ["aerial_sfm", "train_splat", "plan_views"],
@@ -595,9 +624,28 @@ def test_celery_cancel_stops_the_job(service, tiny_survey):
     while c.get(f"/jobs/{job_id}", headers=h).json()["current_stage"] != "train_splat":
         assert time.monotonic() < deadline, service.worker.text()[-3000:]
         time.sleep(0.3)
-    time.sleep(1.0)
+    task_id, task_pid = _running_task(rd, job_id, "train_splat")
+    assert task_pid != service.worker.proc.pid and not _process_gone(task_pid, 1.0)  # a live pool process
+    progress_line = f"job {job_id}: train_splat"
+    while progress_line not in service.worker.text():  # the stage reports progress (the worker logs it)
+        assert time.monotonic() < deadline + 60, service.worker.text()[-3000:]
+        time.sleep(0.3)
     assert c.post(f"/jobs/{job_id}/cancel", headers=h).json()["status"] == "cancelled"
+    # the task was terminated, not left to run to its end
+    assert _process_gone(task_pid, 15.0), (
+        f"pool process {task_pid} still runs:\n{service.worker.text()[-3000:]}"
+    )
+    app = make_app(service.app.state.settings, name="midview-test-revoked", set_as_current=False)
+    try:
+        deadline = time.monotonic() + 15
+        while AsyncResult(task_id, app=app).state != "REVOKED":
+            assert time.monotonic() < deadline, AsyncResult(task_id, app=app).state
+            time.sleep(0.2)
+    finally:
+        app.close()
+    log_after_cancel = len(service.worker.text())
     time.sleep(3.0)
+    assert progress_line not in service.worker.text()[log_after_cancel:]  # no more progress
     job = c.get(f"/jobs/{job_id}", headers=h).json()
     assert job["status"] == "cancelled"
     assert [(st["stage"], st["status"]) for st in job["stages"]] == [
