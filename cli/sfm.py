@@ -104,21 +104,40 @@ def sfm(
     try:
         cams = read_cameras_json(cameras) if cameras is not None else None
         sparse = main(conf, images, out, pos, cams)
-    except (PosError, ImageError, SfmError, GeorefError, ValueError) as e:
+    except GeorefError as e:
+        if (out / "report.json").is_file():
+            print_summary(out)
         _fail(str(e))
-    import json
-
-    report = json.loads((out / "report.json").read_text())
-    g = report["georef"]["residual_m"]
-    typer.echo(
-        f"NRI {report['NRI']}, N3P {report['num_points3D']}, reprojection error "
-        f"{report['mean_reprojection_error_px']:.2f} px, georef residual mean {g['mean']:.2f} m / "
-        f"max {g['max']:.2f} m"
-    )
-    for u in report["unregistered"]:
-        typer.echo(f"  not registered: {u['name']}: {u['reason']}")
+    except (PosError, ImageError, SfmError, ValueError) as e:
+        _fail(str(e))
+    report = print_summary(out)
+    g = report["georef"]
+    if g["status"] != "ok":
+        typer.secho(f"warning: the georeference is {g['status']}:", fg="yellow", err=True)
+        for reason in g["reasons"]:
+            typer.secho(f"  {reason}", fg="yellow", err=True)
     crs = report["crs"]
     if crs["output"]:
         typer.echo(f"camera positions in {crs['output']} (POS CRS {crs['pos'] or 'WGS84'})")
     files = ", ".join(str(out / f) for f in ("georef.json", "report.json", *crs["files"]))
     typer.echo(f"wrote {sparse}, {files}")
+
+
+def print_summary(out: Path) -> dict:
+    """Print the key figures of OUT/report.json (and why images did not register); return the report."""
+    import json
+
+    report = json.loads((out / "report.json").read_text())
+    g = report["georef"]["residual_m"]
+    georef = (
+        "no georeference"
+        if g["mean"] is None
+        else f"georef residual mean {g['mean']:.2f} m / max {g['max']:.2f} m"
+    )
+    typer.echo(
+        f"NRI {report['NRI']}, N3P {report['num_points3D']}, reprojection error "
+        f"{report['mean_reprojection_error_px']:.2f} px, {georef} ({report['georef']['status']})"
+    )
+    for u in report["unregistered"]:
+        typer.echo(f"  not registered: {u['name']}: {u['reason']}")
+    return report

@@ -6,19 +6,27 @@ Steps (each a `shared.logging.stage`), all in pycolmap 4 on one COLMAP database:
    named `aerial/<file>` through a symlink `out/images/aerial`); every image is decoded once to catch
    unreadable or truncated files; POS is checked against the images (both directions).
 2. features: SIFT (pycolmap, downscaled to `max_image_size`, keypoints at full resolution) into the
-   database, one camera for the set (intrinsics prior from cameras.json, else EXIF 35 mm focal length),
-   or ALIKED (services.features) imported into the database. The POS positions go in as pose priors in
-   a local ENU frame (LocalFrame at the mean POS position), with their covariance.
+   database, one camera for the set (intrinsics prior from cameras.json, else EXIF), or ALIKED
+   (services.features) imported into the database. ALIKED and LightGlue are not rotation invariant:
+   with `features.upright = "pos"` each image is turned by the quarter turns that bring its view of
+   the ground to north up (from its POS attitude), so that overlapping images are matched at about one
+   in-plane orientation (the nadir images of a serpentine flight are 180 degrees apart from one line
+   to the next otherwise); keypoints are stored in the image's own pixels. The POS
+   positions go in as pose priors in a local ENU frame (LocalFrame at the mean POS position), with
+   their covariance.
 3. matching: pairs from the POS (pairing.py, `matching.pairs`): exhaustive, spatial neighbours, or
    overlapping ground footprints; "auto" matches up to `exhaustive_max` images exhaustively, else by
    footprints when attitudes and the terrain height are known, else by spatial neighbours. Geometric
-   verification by pycolmap (LightGlue + pycolmap verification for ALIKED).
+   verification by pycolmap (LightGlue + pycolmap verification for ALIKED), then a POS check of the
+   verified pairs (verify.py) removes those whose geometry contradicts the POS attitudes and positions.
 4. mapping: pycolmap incremental mapping; with `use_prior_position` its bundle adjustment includes the
    POS positions (robust loss), so the models come out in the ENU frame. The largest model is kept.
 5. georef: a robust similarity from its camera centres to the POS positions (georef.py), applied to
-   the model, with residuals per image.
-6. outputs: out/sparse (COLMAP model, local ENU), georef.json, report.json, cameras.geojson (WGS84)
-   and, in the output CRS (conf export.out_crs; by default the POS CRS unless WGS84 lat/lon),
+   the model, with residuals per image and a status: "ok", "suspect" (few inliers, large residuals or
+   attitude errors; reasons listed) or "failed" (fewer than 3 inliers, or no estimate): then every
+   output is still written, the model not georeferenced, and GeorefError is raised at the end.
+6. outputs: out/sparse (COLMAP model, local ENU), pairs.txt, georef.json, report.json, cameras.geojson
+   (WGS84) and, in the output CRS (conf export.out_crs; by default the POS CRS unless WGS84 lat/lon),
    cameras.csv and cameras.epsg<code>.geojson (export.py).
 """
 
@@ -56,17 +64,25 @@ from shared.logging import stage
 from . import export as export_mod
 from . import georef as georef_mod
 from . import pairing as pairing_mod
+from . import verify as verify_mod
 from .report import build_report, write_report
 
 logger = logging.getLogger("midview.sfm")
 
 _BASE: dict[str, Any] = {
-    "features": {"type": "sift", "max_image_size": 1600, "max_num_features": 8192, "chunk": 4},
+    "features": {
+        "type": "sift",
+        "max_image_size": 1600,  # SIFT
+        "max_num_features": 8192,  # SIFT
+        "chunk": 4,  # SIFT: images per pycolmap call (progress)
+        "upright": "pos",  # ALIKED: turn each image north up by quarter turns (POS attitude), or "none"
+    },
     "matching": {
         **pairing_mod.default_conf,  # pairs: auto | exhaustive | spatial | footprint, and their settings
         "min_num_inliers": 15,
         "max_num_matches": 32768,
     },
+    "verify": {k: v for k, v in verify_mod.default_conf.items() if not k.startswith("default_std")},
     "mapping": {
         "use_prior_position": True,
         "robust_prior": True,
@@ -309,45 +325,112 @@ def camera_priors(
     return out
 
 
-def features_aliked(
+def unrotate_keypoints(kp: np.ndarray, k: int, width: int, height: int) -> np.ndarray:
+    """Keypoints (COLMAP convention) of np.rot90(image, k) back in the (width x height) image."""
+    kp = np.asarray(kp, np.float64)
+    for t in range(k % 4, 0, -1):  # undo turn t; before it the image was (width, height) or turned
+        w = width if (t - 1) % 2 == 0 else height
+        kp = np.stack([w - kp[:, 1], kp[:, 0]], 1)
+    return kp.astype(np.float32)
+
+
+def aliked_conf(conf: dict) -> dict:
+    """The services.features conf of the ALIKED path (a name or a dict) with `features` overrides."""
+    from services import features as features_mod
+
+    fc = conf["features"]
+    base = features_mod.confs[fc["conf"]] if isinstance(fc["conf"], str) else fc["conf"]
+    model = {**base["model"], **fc.get("model", {})}
+    pre = {**base["preprocessing"], **fc.get("preprocessing", {})}
+    out = {**base, "model": model, "preprocessing": pre}
+    if model != base["model"] or pre != base["preprocessing"]:
+        out["output"] = f"{base['output']}-sfm"
+    return out
+
+
+def extract_aliked(
+    conf: dict, root: Path, names: list[str], turns: dict[str, int], cache: Path
+) -> dict[str, dict]:
+    """ALIKED of every image, each turned by its quarter turns (`turns`): unturned images through the
+    services.features cache, turned ones in memory. Per image the features with keypoints in the turned
+    image's pixels (for LightGlue, with its size), and `image_keypoints` and `own_size` of the image."""
+    from services import features as features_mod
+    from shared.images import read_image
+
+    fconf = aliked_conf(conf)
+    plain = [n for n in names if turns.get(n, 0) == 0]
+    if plain:
+        features_mod.main(fconf, root, plain, cache)
+    feats: dict[str, dict] = {}
+    for n in tqdm(names, desc="ALIKED", unit="img", disable=not len(plain) < len(names)):
+        k = turns.get(n, 0)
+        if k == 0:
+            f = features_mod.load_features(cache, n)
+            f["image_keypoints"], f["own_size"] = f["keypoints"], f["image_size"]
+        else:
+            image = read_image(root / n, grayscale=fconf["preprocessing"].get("grayscale", False))
+            h, w = image.shape[:2]
+            f = features_mod.extract(fconf, np.ascontiguousarray(np.rot90(image, k)))
+            f["image_size"] = np.array([w, h] if k % 2 == 0 else [h, w], np.int64)
+            f["image_keypoints"], f["own_size"] = (
+                unrotate_keypoints(f["keypoints"], k, w, h),
+                np.array([w, h]),
+            )
+        feats[n] = f
+    return feats
+
+
+def write_aliked_database(
     conf: dict,
     db_path: Path,
-    root: Path,
     names: list[str],
     camera: Camera | None,
-    name_pairs: list[tuple[str, str]],
-) -> None:
-    """ALIKED (services.features) + LightGlue into the database, then pycolmap's verification."""
-    from services import features as features_mod
-    from services.matching.direct import match_features
-
-    fconf = features_mod.confs[conf["features"]["conf"]]
-    feature_path = db_path.parent / f"{fconf['output']}.h5"
-    features_mod.main(fconf, root, names, feature_path)
-    feats = {n: features_mod.load_features(feature_path, n) for n in names}
-    w, h = (int(v) for v in feats[names[0]]["image_size"])
-    cam = camera or Camera(conf["camera"]["model"], w, h, [1.2 * max(w, h), w / 2, h / 2, 0.0])
+    feats: dict[str, dict],
+) -> dict[str, int]:
+    """Cameras (one per image size, the prior when given), rigs, frames, images and keypoints; {name: id}."""
     db = pycolmap.Database.open(str(db_path))
+    ids: dict[str, int] = {}
     try:
-        pcam = cam.to_pycolmap(camera_id=0)
-        pcam.has_prior_focal_length = camera is not None
-        pcam.camera_id = db.write_camera(pcam)
-        rig = pycolmap.Rig()
-        rig.add_ref_sensor(pcam.sensor_id)
-        rig_id = db.write_rig(rig)
-        ids = []
+        cam_ids: dict[tuple[int, int], tuple[int, int]] = {}
         for n in names:
-            image = pycolmap.Image(name=n, camera_id=pcam.camera_id)
+            w, h = (int(v) for v in feats[n]["own_size"])
+            if (w, h) not in cam_ids:
+                cam = camera or Camera(conf["camera"]["model"], w, h, [1.2 * max(w, h), w / 2, h / 2, 0.0])
+                pcam = cam.to_pycolmap(camera_id=0)
+                pcam.has_prior_focal_length = camera is not None
+                pcam.camera_id = db.write_camera(pcam)
+                rig = pycolmap.Rig()
+                rig.add_ref_sensor(pcam.sensor_id)
+                cam_ids[(w, h)] = (pcam.camera_id, db.write_rig(rig))
+            cam_id, rig_id = cam_ids[(w, h)]
+            image = pycolmap.Image(name=n, camera_id=cam_id)
             image.image_id = db.write_image(image)
             frame = pycolmap.Frame(rig_id=rig_id)
             frame.add_data_id(image.data_id)
             db.write_frame(frame)
-            db.write_keypoints(image.image_id, np.ascontiguousarray(feats[n]["keypoints"], np.float32))
-            ids.append(image.image_id)
-        id_of = dict(zip(names, ids, strict=True))
-        for a, b in tqdm(name_pairs, desc="LightGlue", unit="pair"):
+            db.write_keypoints(image.image_id, np.ascontiguousarray(feats[n]["image_keypoints"], np.float32))
+            ids[n] = image.image_id
+    finally:
+        db.close()
+    return ids
+
+
+def match_aliked(
+    conf: dict,
+    db_path: Path,
+    ids: dict[str, int],
+    feats: dict[str, dict],
+    pairs: list[tuple[str, str]],
+) -> None:
+    """LightGlue on each pair (each image at its turn), into the database; then pycolmap's
+    geometric verification."""
+    from services.matching.direct import match_features
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        for a, b in tqdm(pairs, desc="LightGlue", unit="pair"):
             m, _ = match_features(feats[a], feats[b], conf["matching"]["matcher"])
-            db.write_matches(id_of[a], id_of[b], np.ascontiguousarray(m, np.uint32).reshape(-1, 2))
+            db.write_matches(ids[a], ids[b], np.ascontiguousarray(m, np.uint32).reshape(-1, 2))
     finally:
         db.close()
     vopts = pycolmap.TwoViewGeometryOptions()
@@ -482,6 +565,8 @@ def main(
         p.unlink(missing_ok=True)
     pairing = f"{pair_mode} ({len(name_pairs)} pairs)"
     std_xy, std_z = conf["pos"]["default_std_xy"], conf["pos"]["default_std_z"]
+    std_conf = {"default_std_xy": std_xy, "default_std_z": std_z}
+    extra: dict[str, Any] = {}  # report entries of one feature path
     ftype = conf["features"]["type"]
     with colmap_log_level(conf["colmap_log_level"]):
         if ftype == "sift":
@@ -499,15 +584,34 @@ def main(
             with stage("sfm:matching", logger):
                 t0 = time.perf_counter()
                 match_sift(conf, db_path, pair_mode, pairs_path)
+                pair_check = verify_mod.check_pairs(db_path, pos, frame, {**conf["verify"], **std_conf})
                 timings["matching"] = time.perf_counter() - t0
                 dbstats = _log_matching(db_path, conf, pairing, timings["matching"])
         elif ftype == "aliked":
-            with stage("sfm:features+matching", logger):
+            with stage("sfm:features", logger):
                 t0 = time.perf_counter()
-                features_aliked(conf, db_path, root, names, camera, name_pairs)
+                upright = conf["features"]["upright"] == "pos"
+                turns = pairing_mod.upright_turns(pos, names) if upright else {}
+                cache = out_dir / f"{aliked_conf(conf)['output']}.h5"
+                feats = extract_aliked(conf, root, names, turns, cache)
+                ids = write_aliked_database(conf, db_path, names, camera, feats)
                 write_pose_priors(db_path, pos, frame, std_xy, std_z)
-                timings["features"] = timings["matching"] = (time.perf_counter() - t0) / 2
-                dbstats = _log_matching(db_path, conf, pairing, 2 * timings["matching"])
+                timings["features"] = time.perf_counter() - t0
+                turned = sum(k != 0 for k in turns.values())
+                extra["aliked"] = {"turned_images": turned, "turns": {n: k for n, k in turns.items() if k}}
+                logger.info(
+                    "%d images (%d turned north up), %.0f keypoints per image in %.1f s",
+                    len(names),
+                    turned,
+                    np.mean([len(feats[n]["keypoints"]) for n in names]),
+                    timings["features"],
+                )
+            with stage("sfm:matching", logger):
+                t0 = time.perf_counter()
+                match_aliked(conf, db_path, ids, feats, name_pairs)
+                pair_check = verify_mod.check_pairs(db_path, pos, frame, {**conf["verify"], **std_conf})
+                timings["matching"] = time.perf_counter() - t0
+                dbstats = _log_matching(db_path, conf, pairing, timings["matching"])
         else:
             raise ValueError(f"unknown feature type {ftype!r} (sift or aliked)")
         with stage("sfm:mapping", logger):
@@ -534,35 +638,42 @@ def main(
     with stage("sfm:georef", logger):
         t0 = time.perf_counter()
         sigma = float(np.median([pos[n].std_xy or std_xy for n in names]))
-        geo = georef_mod.georeference(rec, pos, frame, sigma, conf["georef"])
+        geo: georef_mod.Georef | None = None
+        try:
+            geo = georef_mod.georeference(rec, pos, frame, sigma, conf["georef"])
+            gsum = georef_mod.summary(geo, conf["georef"])
+        except georef_mod.GeorefError as e:
+            gsum = georef_mod.failed_summary(str(e))
+        failed = gsum["status"] == "failed"
+        if failed:
+            crs_doc["files"] = []
         sparse = out_dir / "sparse"
         if sparse.exists():
             shutil.rmtree(sparse)
         sparse.mkdir(parents=True)
-        rec.write(str(sparse))
-        georef_mod.write_georef(out_dir / "georef.json", geo, frame, crs_doc)
+        rec.write(str(sparse))  # kept whatever the georeferencing gave
+        georef_mod.write_georef(out_dir / "georef.json", geo, frame, crs_doc, gsum)
         timings["georef"] = time.perf_counter() - t0
-        gsum = georef_mod.summary(geo)
-        if gsum["suspect"]:
-            logger.warning(
-                "only %d of %d cameras lie within %.1f m of their POS: the model or the POS is wrong",
+        if geo is not None:
+            logger.info(
+                "georeferenced by %s: residuals mean %.2f m, median %.2f m, max %.2f m (%d/%d inliers)",
+                geo.method,
+                gsum["residual_m"]["mean"],
+                gsum["residual_m"]["median"],
+                gsum["residual_m"]["max"],
                 gsum["num_inliers"],
                 gsum["num_images"],
-                geo.condition["max_error_m"],
             )
-        logger.info(
-            "georeferenced by %s: residuals mean %.2f m, median %.2f m, max %.2f m (%d/%d inliers)",
-            geo.method,
-            gsum["residual_m"]["mean"],
-            gsum["residual_m"]["median"],
-            gsum["residual_m"]["max"],
-            gsum["num_inliers"],
-            gsum["num_images"],
-        )
+        if gsum["status"] != "ok":
+            logger.warning("georeference %s: %s", gsum["status"], "; ".join(gsum["reasons"]))
 
     with stage("sfm:report", logger):
-        residuals = {n: float(np.linalg.norm(v)) for n, v in geo.residuals.items()}
-        export_mod.main(conf["export"], rec, frame, out_dir, in_crs, residuals)
+        if failed:  # no camera positions from a failed georeference (nor stale ones of an earlier run)
+            for p in (out_dir / "cameras.geojson", out_dir / "cameras.csv", *out_dir.glob("cameras.epsg*")):
+                p.unlink(missing_ok=True)
+        else:
+            residuals = {n: float(np.linalg.norm(v)) for n, v in geo.residuals.items()}  # type: ignore[union-attr]
+            export_mod.main(conf["export"], rec, frame, out_dir, in_crs, residuals)
         timings["total"] = time.perf_counter() - t_all
         report = build_report(
             rec,
@@ -570,7 +681,7 @@ def main(
             db_path,
             models,
             best,
-            {**gsum, "method": geo.method, "condition": geo.condition},
+            {**gsum, "method": geo and geo.method, "condition": geo and geo.condition},
             timings,
             extra={
                 "conf": conf.get("output", ftype),
@@ -581,6 +692,8 @@ def main(
                 "frame": {"lat0": frame.lat0, "lon0": frame.lon0, "h0": frame.h0},
                 "crs": crs_doc,
                 "database": dbstats,
+                "pair_check": pair_check,
+                **extra,
             },
             min_inliers=conf["matching"]["min_num_inliers"],
         )
@@ -593,5 +706,10 @@ def main(
             report["num_points3D"],
             report["mean_reprojection_error_px"],
             sparse,
+        )
+    if failed:
+        raise georef_mod.GeorefError(
+            f"georeferencing failed: {'; '.join(gsum['reasons'])}. The model is kept in {sparse} "
+            f"(not georeferenced), the report in {out_dir / 'report.json'}"
         )
     return sparse

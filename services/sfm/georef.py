@@ -34,6 +34,10 @@ default_conf = {
     "coplanar_ratio": 0.05,  # third / second singular value below this: coplanar (reported only)
     "min_images": 3,
     "seed": 0,
+    # status "suspect" when fewer than this share of the cameras are inliers, or the mean residual is
+    # above the inlier threshold, or the median attitude residual above attitude_inlier_deg;
+    # "failed" when fewer than min_images cameras are inliers
+    "min_inlier_ratio": 0.5,
 }
 
 
@@ -212,28 +216,81 @@ def _stats(values: list[float]) -> dict:
     }
 
 
-def summary(geo: Georef) -> dict:
-    """Residual statistics (metres, degrees) of a georeferencing."""
+def status(geo: Georef, conf: dict | None = None) -> tuple[str, list[str]]:
+    """("ok" | "suspect" | "failed", reasons) of a georeferencing, from its inliers and residuals."""
+    conf = {**default_conf, **(conf or {})}
+    n, n_in = len(geo.inliers), int(sum(geo.inliers.values()))
+    thr = float(geo.condition.get("max_error_m", conf["min_max_error"]))
     norms = [float(np.linalg.norm(v)) for v in geo.residuals.values()]
+    reasons = []
+    if n_in < conf["min_images"]:
+        reasons.append(f"only {n_in} of {n} cameras lie within {thr:.1f} m of their POS")
+        return "failed", reasons
+    if n_in < conf["min_inlier_ratio"] * n:
+        reasons.append(f"only {n_in} of {n} cameras lie within {thr:.1f} m of their POS")
+    if norms and float(np.mean(norms)) > thr:
+        reasons.append(f"mean residual {np.mean(norms):.2f} m is above the inlier threshold {thr:.1f} m")
+    att = list(geo.attitude_deg.values())
+    if att and float(np.median(att)) > conf["attitude_inlier_deg"]:
+        reasons.append(f"camera attitudes are {np.median(att):.1f} degrees off the POS (median)")
+    if "ill-conditioned" in geo.method:
+        reasons.append(
+            "camera centres close to a line and no POS attitude: the rotation about it is uncertain by "
+            f"{geo.condition['rotation_uncertainty_deg']:.1f} degrees"
+        )
+    return ("suspect" if reasons else "ok"), reasons
+
+
+def summary(geo: Georef, conf: dict | None = None) -> dict:
+    """Residual statistics (metres, degrees) and status of a georeferencing."""
+    norms = [float(np.linalg.norm(v)) for v in geo.residuals.values()]
+    state, reasons = status(geo, conf)
     return {
+        "status": state,
+        "reasons": reasons,
         "num_images": len(geo.residuals),
         "num_inliers": int(sum(geo.inliers.values())),
         "residual_m": _stats(norms),
         "horizontal_m": _stats([float(np.linalg.norm(v[:2])) for v in geo.residuals.values()]),
         "vertical_m": _stats([float(abs(v[2])) for v in geo.residuals.values()]),
         "attitude_deg": _stats(list(geo.attitude_deg.values())),
-        # most images off their POS by more than the inlier threshold: a broken model or a bad POS
-        "suspect": bool(sum(geo.inliers.values()) < 0.5 * len(geo.inliers)),
+        "suspect": state != "ok",
     }
 
 
-def write_georef(path: str | Path, geo: Georef, frame: LocalFrame, crs: dict | None = None) -> Path:
-    """georef.json: frame origin, similarity (ENU from reconstruction), conditioning, residuals per image;
-    `crs`: the POS input CRS and the output CRS (`{"pos": ..., "output": ..., "files": [...]}`)."""
-    q = pycolmap.Rotation3d(geo.R).quat  # xyzw
-    doc = {
+def failed_summary(reason: str) -> dict:
+    """The summary of a georeferencing that could not be estimated at all."""
+    return {
+        "status": "failed",
+        "reasons": [reason],
+        "num_images": 0,
+        "num_inliers": 0,
+        **{k: _stats([]) for k in ("residual_m", "horizontal_m", "vertical_m", "attitude_deg")},
+        "suspect": True,
+    }
+
+
+def write_georef(
+    path: str | Path,
+    geo: Georef | None,
+    frame: LocalFrame,
+    crs: dict | None = None,
+    summary_doc: dict | None = None,
+) -> Path:
+    """georef.json: frame origin, similarity (ENU from reconstruction), conditioning, status, residuals per
+    image; `crs`: the POS input CRS and the output CRS (`{"pos": ..., "output": ..., "files": [...]}`).
+    Without `geo` (the estimation failed): the frame, the CRSs and `summary_doc` (status, reasons)."""
+    head = {
         "frame": {"type": "ENU", "lat0": frame.lat0, "lon0": frame.lon0, "h0": frame.h0},
         "crs": crs or {"pos": None, "output": None},
+    }
+    path = Path(path)
+    if geo is None:
+        path.write_text(json.dumps({**head, "summary": summary_doc}, indent=1))
+        return path
+    q = pycolmap.Rotation3d(geo.R).quat  # xyzw
+    doc = {
+        **head,
         "sim3": {
             "scale": geo.scale,
             "rotation": geo.R.tolist(),
@@ -243,7 +300,7 @@ def write_georef(path: str | Path, geo: Georef, frame: LocalFrame, crs: dict | N
         },
         "method": geo.method,
         "condition": geo.condition,
-        "summary": summary(geo),
+        "summary": summary_doc or summary(geo),
         "images": {
             n: {
                 "residual_enu_m": [float(x) for x in v],
@@ -254,6 +311,5 @@ def write_georef(path: str | Path, geo: Georef, frame: LocalFrame, crs: dict | N
             for n, v in sorted(geo.residuals.items())
         },
     }
-    path = Path(path)
     path.write_text(json.dumps(doc, indent=1))
     return path

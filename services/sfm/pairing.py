@@ -266,6 +266,30 @@ def get_pairs(
     return mode, [(names[i], names[j]) for i, j in idx]
 
 
+# -- in-plane rotations -------------------------------------------------------------------------
+def quarter_turns(R_i: np.ndarray, R_j: np.ndarray) -> int:
+    """Counter-clockwise quarter turns of image i (np.rot90) that align it in-plane with image j, from
+    their attitudes (R_world_from_cam): the angle of j's image "down" axis seen in image i, rounded."""
+    v = np.asarray(R_i).T @ np.asarray(R_j)[:, 1]
+    return int(np.round(np.degrees(np.arctan2(-v[0], v[1])) / 90.0)) % 4
+
+
+NORTH_UP = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # a nadir camera, image top north
+
+
+def upright_turns(records: dict[str, PosRecord], names: list[str]) -> dict[str, int]:
+    """For features that are not rotation invariant (ALIKED, LightGlue): per image the quarter turns
+    (np.rot90) that bring its view of the ground to "north up", from its POS attitude: a nadir image
+    then has north at the top and an oblique one its heading's side of the ground, so images that
+    overlap end up at about one in-plane orientation (a serpentine flight's lines are 180 degrees apart
+    otherwise). One turn per image keeps one keypoint list per image. No attitude: no turn."""
+    out = {}
+    for n in names:
+        R = records[n].R_world_from_cam
+        out[n] = 0 if R is None else quarter_turns(R, NORTH_UP)
+    return out
+
+
 def write_pairs(path: str | Path, pairs: list[tuple[str, str]]) -> Path:
     """A pairs file, `name0 name1` per line (COLMAP's imported pairs, hloc's pairs.txt)."""
     path = Path(path)
