@@ -61,6 +61,35 @@ def test_pos_check_against_images(tmp_path):
     assert "2 records" in result.output
 
 
+def test_pos_check_reads_every_pos_format(tmp_path):
+    from test_pos_formats import DJI_XMP, write_gps_jpeg
+
+    from services.pos import PosRecord, write_pos_json, ypr_to_matrix
+
+    flat = tmp_path / "flat"
+    for n in ("DJI_1.JPG", "DJI_2.JPG"):
+        write_gps_jpeg(flat / n, 55.7, 13.19, 80.0, xmp=DJI_XMP)
+    result = runner.invoke(app, ["pos", "check", str(flat)])  # EXIF/XMP of an image folder
+    assert result.exit_code == 0, result.output
+    assert "image EXIF/XMP, CRS EPSG:4326, 2 records, 2 with attitude: OK" in result.output
+    geo = tmp_path / "geo.txt"  # ODM: bare names, matched to the flat folder's aerial/ images
+    geo.write_text("WGS84 UTM 33N\nDJI_1.JPG 500000 6170000 80 90 0 0\nDJI_2.JPG 500010 6170000 80\n")
+    result = runner.invoke(app, ["pos", "check", str(geo), "--images", str(flat)])
+    assert result.exit_code == 0, result.output
+    assert "ODM geo.txt, CRS EPSG:32633, 2 records, 1 with attitude: OK" in result.output
+    geo.write_text("EPSG:32633\nDJI_1.JPG 500000 nan 80\n")
+    result = runner.invoke(app, ["pos", "check", str(geo), "--images", str(flat)])
+    assert result.exit_code == 2 and "line 2, column y: 'nan' is not finite" in result.output
+    recs = [PosRecord(f"aerial/DJI_{i}.JPG", 55.7, 13.19, 80.0, ypr_to_matrix(0, -90, 0)) for i in (1, 3)]
+    js = write_pos_json(tmp_path / "pos.json", recs, crs="EPSG:25833")
+    result = runner.invoke(app, ["pos", "check", str(js), "--images", str(flat)])
+    assert result.exit_code == 2
+    assert "image 'aerial/DJI_2.JPG' has no POS row" in result.output
+    assert "POS row 'aerial/DJI_3.JPG' names no uploaded image" in result.output
+    result = runner.invoke(app, ["pos", "check", str(js)])
+    assert result.exit_code == 0 and "POS JSON, CRS EPSG:25833, 2 records" in result.output
+
+
 def test_synth_rejects_unknown_preset(tmp_path):
     result = runner.invoke(app, ["synth", str(tmp_path / "s"), "--preset", "nope"])
     assert result.exit_code == 2

@@ -208,9 +208,16 @@ def _rational_dms(deg: float) -> tuple[float, float, float]:
 
 
 def write_gps_jpeg(
-    path: Path, lat: float, lon: float, alt: float, size=(64, 48), xmp: str | None = None
+    path: Path,
+    lat: float,
+    lon: float,
+    alt: float,
+    size=(64, 48),
+    xmp: str | None = None,
+    exif_tags: dict | None = None,
 ) -> Path:
-    """A small JPEG with EXIF GPS (and optionally a DJI-style XMP packet)."""
+    """A small JPEG with EXIF GPS (and optionally a DJI-style XMP packet); `exif_tags` replace the Exif
+    IFD's (FocalLengthIn35mmFilm 24 by default; None as a value removes the tag)."""
     img = Image.fromarray(np.random.default_rng(0).integers(0, 255, (size[1], size[0], 3), np.uint8))
     exif = Image.Exif()
     gps = {
@@ -225,6 +232,11 @@ def write_gps_jpeg(
     exif[0x010F] = "DJI"
     sub = exif.get_ifd(0x8769)
     sub[0xA405] = 24
+    for tag, value in (exif_tags or {}).items():
+        if value is None:
+            sub.pop(tag, None)
+        else:
+            sub[tag] = value
     kwargs = {"exif": exif.tobytes()}
     if xmp is not None:
         kwargs["xmp"] = xmp.encode()
@@ -293,7 +305,50 @@ def test_exif_of_a_dji_image():
     assert cam.params[0] == pytest.approx(20 * np.hypot(4000, 2250) / 43.27)
 
 
+def test_focal_length_from_the_focal_plane_resolution(tmp_path):
+    """No 35 mm equivalent: FocalLength (mm) and FocalPlaneXResolution give the focal length in pixels."""
+    no35 = {0xA405: None, 0x920A: 8.8}  # a 1" sensor, 13.2 mm wide, 5472 px across
+    res = {0xA20E: 5472 / 13.2, 0xA210: 4}  # pixels per mm
+    d = read_exif(write_gps_jpeg(tmp_path / "a.jpg", 55.7, 13.19, 80.0, exif_tags={**no35, **res}))
+    assert d.focal_35mm is None and d.focal_plane_px_per_mm == pytest.approx(5472 / 13.2)
+    # the EXIF is that of the full 5472 px image, this copy is 64 px wide: the focal length scales
+    full = {**no35, **res, 0xA002: 5472}
+    cam = camera_from_exif(read_exif(write_gps_jpeg(tmp_path / "b.jpg", 55.7, 13.19, 80.0, exif_tags=full)))
+    assert cam.params[0] == pytest.approx(8.8 / 13.2 * 64)
+    assert camera_from_exif(d).params[0] == pytest.approx(8.8 * 5472 / 13.2)  # no PixelXDimension: as is
+    inch = {**no35, 0xA20E: 5472 / 13.2 * 25.4, 0xA210: 2, 0xA002: 5472}  # pixels per inch
+    cam = camera_from_exif(read_exif(write_gps_jpeg(tmp_path / "c.jpg", 55.7, 13.19, 80.0, exif_tags=inch)))
+    assert cam.params[0] == pytest.approx(8.8 / 13.2 * 64)
+    # the 35 mm equivalent wins; without either, no prior (as before)
+    both = {**full, 0xA405: 24}
+    cam = camera_from_exif(read_exif(write_gps_jpeg(tmp_path / "d.jpg", 55.7, 13.19, 80.0, exif_tags=both)))
+    assert cam.params[0] == pytest.approx(24 * 80 / 43.27)
+    for tags in (no35, {**no35, 0xA20E: 400.0, 0xA210: 1}, {0xA405: None, 0xA20E: 400.0, 0xA210: 4}):
+        path = write_gps_jpeg(tmp_path / "e.jpg", 55.7, 13.19, 80.0, exif_tags=tags)
+        assert camera_from_exif(read_exif(path)) is None  # no resolution, no unit, no focal length
+
+
 # -- dispatch and images <-> POS ---------------------------------------------------------------
+def test_read_pos_options_go_to_the_readers_that_take_them(tmp_path):
+    recs = _recs()
+    csv = write_pos_csv(tmp_path / "pos.csv", recs)
+    js = write_pos_json(tmp_path / "p.json", recs)
+    geo = tmp_path / "geo.txt"
+    geo.write_text("EPSG:4326\naerial/A.jpg 13.19 55.70 80 90 30 0\n")
+    options = {"pitch_zero": "horizon", "altitude": "relative", "takeoff_h": 10.0}
+    for p in (csv, js):  # these readers take no option: none is passed (was a TypeError)
+        assert [r.name for r in read_pos(p, **options)] == [r.name for r in recs]
+    (a,) = read_pos(geo, **options)  # pitch_zero reaches the geo.txt reader
+    np.testing.assert_allclose(a.R_world_from_cam, ypr_to_matrix(90, 30, 0), atol=1e-12)
+    (b,) = read_pos(geo)  # auto: ODM's nadir-zero pitch
+    np.testing.assert_allclose(b.R_world_from_cam, ypr_to_matrix(90, -60, 0), atol=1e-12)
+    write_gps_jpeg(tmp_path / "flat" / "IMG_1.JPG", 55.7, 13.19, 58.25, xmp=DJI_XMP)
+    (e,) = read_pos(tmp_path / "flat", **options)  # altitude and takeoff_h reach the EXIF reader
+    assert e.h == pytest.approx(50.1)
+    with pytest.raises(TypeError, match="unknown option.*pitch_zeor"):
+        read_pos(csv, pitch_zeor="nadir")
+
+
 def test_read_pos_dispatch_and_names(tmp_path):
     recs = _recs()
     names = [r.name for r in recs]

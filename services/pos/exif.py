@@ -10,7 +10,8 @@
   aircraft body) are read but not used for the camera.
 - Accuracy: DJI RTK models write drone-dji:RtkStdLon/RtkStdLat/RtkStdHgt (metres); used when present.
 - Intrinsics: SIMPLE_RADIAL with f_px = FocalLengthIn35mmFilm * diagonal_px / 43.27 (the 35 mm
-  film diagonal), principal point at the centre, no distortion.
+  film diagonal), else f_px = FocalLength (mm) * FocalPlaneXResolution (pixels per mm, after
+  FocalPlaneResolutionUnit) * width / PixelXDimension; principal point at the centre, no distortion.
 
 A flat folder of images (no `aerial/` or `ground/` inside) is one aerial set: its images are named
 `aerial/<file>` (docs/formats.md).
@@ -42,6 +43,8 @@ _XMP_ATTR = re.compile(rb'drone-dji:(\w+)\s*=\s*"([^"]*)"')
 _XMP_ELEM = re.compile(rb"<drone-dji:(\w+)>([^<]*)</drone-dji:\1>")
 _GPS_IFD, _EXIF_IFD = 0x8825, 0x8769
 _TAG_MAKE, _TAG_MODEL, _TAG_FOCAL, _TAG_FOCAL35 = 0x010F, 0x0110, 0x920A, 0xA405
+_TAG_FP_XRES, _TAG_FP_UNIT, _TAG_PIXEL_X = 0xA20E, 0xA210, 0xA002
+FOCAL_PLANE_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # EXIF FocalPlaneResolutionUnit: inch, cm, mm, um
 
 
 @dataclass
@@ -59,6 +62,8 @@ class ExifData:
     rtk_std: tuple[float, float, float] | None = None  # (lon, lat, height) metres
     focal_mm: float | None = None
     focal_35mm: float | None = None
+    focal_plane_px_per_mm: float | None = None  # EXIF FocalPlaneXResolution in pixels per millimetre ...
+    focal_plane_width_px: int | None = None  # ... of an image this wide (EXIF PixelXDimension)
     make: str | None = None
     model: str | None = None
 
@@ -162,6 +167,11 @@ def read_exif(path: str | Path) -> ExifData:
         data.alt = None if alt is None else (-alt if below else alt)
     data.focal_mm = _float(sub.get(_TAG_FOCAL))
     data.focal_35mm = _float(sub.get(_TAG_FOCAL35)) or None
+    res, unit = _float(sub.get(_TAG_FP_XRES)), sub.get(_TAG_FP_UNIT, 2)  # EXIF's default unit: inch
+    if res and res > 0 and unit in FOCAL_PLANE_UNIT_MM:
+        data.focal_plane_px_per_mm = res / FOCAL_PLANE_UNIT_MM[unit]
+        pixel_x = _float(sub.get(_TAG_PIXEL_X))
+        data.focal_plane_width_px = int(pixel_x) if pixel_x and pixel_x > 0 else None
     xmp = read_xmp(path)
     if data.alt is None:
         data.alt = _float(xmp.get("AbsoluteAltitude"))
@@ -172,13 +182,25 @@ def read_exif(path: str | Path) -> ExifData:
     return data
 
 
+def focal_px(data: ExifData) -> float | None:
+    """Focal length in pixels: from the 35 mm equivalent (over the film diagonal), else from FocalLength
+    (mm) and the sensor's FocalPlaneXResolution (pixels per mm at PixelXDimension pixels across, scaled
+    to this image's width); None when the EXIF gives neither."""
+    if data.focal_35mm:
+        return data.focal_35mm * math.hypot(data.width, data.height) / FILM_DIAGONAL_MM
+    if data.focal_mm and data.focal_mm > 0 and data.focal_plane_px_per_mm:
+        scale = data.width / (data.focal_plane_width_px or data.width)  # a resized copy keeps the EXIF
+        return data.focal_mm * data.focal_plane_px_per_mm * scale
+    return None
+
+
 def camera_from_exif(data: ExifData) -> Camera | None:
-    """SIMPLE_RADIAL prior from the 35 mm equivalent focal length; None when the EXIF lacks it."""
+    """SIMPLE_RADIAL prior from the EXIF focal length (`focal_px`); None when the EXIF lacks it."""
     from services.colmap_model import Camera  # pycolmap: imported only when needed
 
-    if not data.focal_35mm:
+    f = focal_px(data)
+    if f is None:
         return None
-    f = data.focal_35mm * math.hypot(data.width, data.height) / FILM_DIAGONAL_MM
     return Camera("SIMPLE_RADIAL", data.width, data.height, [f, data.width / 2.0, data.height / 2.0, 0.0])
 
 

@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 import os
 from collections.abc import Iterable
@@ -137,6 +138,21 @@ def sniff_format(path: Path) -> str:
     return "geo"
 
 
+def _readers() -> dict:
+    from .exif import read_pos_exif
+    from .json_format import read_pos_json
+    from .odm import read_geo_txt
+    from .pos_csv import read_pos_csv
+
+    return {"exif": read_pos_exif, "csv": read_pos_csv, "json": read_pos_json, "geo": read_geo_txt}
+
+
+def reader_options(reader) -> set[str]:
+    """The keyword options of a format reader (its parameters after the path, `names` excepted)."""
+    params = list(inspect.signature(reader).parameters)[1:]
+    return {p for p in params if p != "names"}
+
+
 def read_pos(
     path: str | os.PathLike,
     image_names: Iterable[str] | None = None,
@@ -146,25 +162,27 @@ def read_pos(
 
     With `image_names`, bare file names in the POS are mapped to the images' full names
     (`aerial/X.jpg`) and every image must have a record and every record an image (PosError otherwise).
-    `kwargs` go to the format's reader (e.g. `pitch_zero` for geo.txt, `altitude` for EXIF).
+    `kwargs` are options of the readers (`pitch_zero` for geo.txt; `altitude`, `attitude`, `takeoff_h`
+    for EXIF): each goes to the reader that takes it and is ignored by the others, so one call can
+    carry the options of every format; an option no reader takes is a TypeError.
     """
-    from .exif import read_pos_exif
-    from .json_format import read_pos_json
-    from .odm import read_geo_txt
-    from .pos_csv import read_pos_csv
-
     path = Path(path)
+    readers = _readers()
+    known = {o for r in readers.values() for o in reader_options(r)}
+    unknown = sorted(set(kwargs) - known)
+    if unknown:
+        raise TypeError(
+            f"read_pos: unknown option(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})"
+        )
     if not path.exists():
         raise PosError([f"{path}: no such file or folder"])
     kind = sniff_format(path)
+    reader = readers[kind]
+    options = {k: v for k, v in kwargs.items() if k in reader_options(reader)}
     if kind == "exif":
-        records = read_pos_exif(path, names=None if image_names is None else list(image_names), **kwargs)
-    elif kind == "csv":
-        records = read_pos_csv(path, **kwargs)
-    elif kind == "json":
-        records = read_pos_json(path, **kwargs)
+        records = reader(path, names=None if image_names is None else list(image_names), **options)
     else:
-        records = read_geo_txt(path, **kwargs)
+        records = reader(path, **options)
     if image_names is not None:
         names = list(image_names)
         match_names(records, names)
