@@ -451,12 +451,17 @@ def view_names(job: Job) -> list[str]:
 
 
 def prepare_match_views(job: Job) -> Path:
-    """Extract the candidate aerial and ground images' features once (before the fan-out)."""
+    """Extract the features of the candidate aerial and ground images once (before the fan-out), and
+    of every aerial image of the model when the reducer completes aerial tracks."""
     from services.matching import views as mv
 
     doc = json.loads((job.dir("views") / "views.json").read_text())
-    names = sorted({n for v in doc["views"] for n in (*v.get("aerial", []), *v.get("ground", []))})
-    return mv.prepare_features(job.match_conf(), job.image_dir, names, job.features_path)
+    names = {n for v in doc["views"] for n in (*v.get("aerial", []), *v.get("ground", []))}
+    if job.transfer_conf()["tracks"]["enabled"]:
+        from services.colmap_model import read_model
+
+        names |= set(read_model(job.dir("sfm") / "sparse")[1])
+    return mv.prepare_features(job.match_conf(), job.image_dir, sorted(names), job.features_path)
 
 
 def match_view_unit(job: Job, name: str) -> Path:
@@ -496,6 +501,7 @@ def _reduce(job: Job, report) -> dict:
         job.cameras,
         job.dir("sfm") / "georef.json",
         job.dir("transfer"),
+        features=job.features_path,
     )
     rep = json.loads((job.dir("transfer") / "report.json").read_text())
     return {

@@ -49,6 +49,8 @@ from typing import Any
 import numpy as np
 
 from services.colmap_model import Camera, Pose, read_cameras_json, read_model
+from services.tracks import complete_tracks
+from services.tracks import default_conf as tracks_default_conf
 from shared.logging import stage
 from shared.matchfile import MatchFile, PairMatches
 
@@ -87,6 +89,9 @@ default_conf: dict[str, Any] = {
         "min_rotation_deg": 10.0,  # ... and within this angle of the POS attitude
         "seed": 0,
     },
+    # aerial points observed in every aerial image that sees them (services.tracks: guided matching with
+    # the matching features' descriptors), so a link reaches all their aerial images
+    "tracks": dict(tracks_default_conf),
     "fundamental": {"enabled": True, "threshold": 3.0, "confidence": 0.999, "max_iters": 10000},
     "min_pair_matches": 1,  # verified pairs with fewer matches are written without inliers
     "unverified": "drop",  # ground images without an accepted pose: "drop" or "fundamental" (F-RANSAC only)
@@ -493,6 +498,21 @@ def load_views(
     return sorted(out, key=lambda v: v.name), doc
 
 
+def load_aerial_features(path: str | Path, names: list[str]) -> dict[str, dict[str, np.ndarray]]:
+    """Keypoints and descriptors of the aerial images `names` found in a feature cache."""
+    import h5py
+
+    from services.features import load_features
+
+    path = Path(path)
+    if not path.is_file():
+        logger.warning("no feature cache %s: aerial tracks are not completed", path)
+        return {}
+    with h5py.File(path, "r") as h5:
+        present = [n for n in names if n in h5]
+    return {n: load_features(path, n) for n in present}
+
+
 def ground_priors(
     pos: str | Path | list, georef: str | Path
 ) -> tuple[dict[str, Pose], dict[str, tuple[float, float, float]]]:
@@ -520,10 +540,12 @@ def reduce_views(
     priors: dict[str, Pose],
     prior_std: dict[str, tuple[float, float, float]],
     conf: dict | None = None,
+    aerial_features: dict[str, dict[str, np.ndarray]] | None = None,
 ) -> tuple[dict[tuple[str, str], dict], dict[str, np.ndarray], dict[str, dict], dict]:
     """The reducer on loaded views. Returns (pairs, keypoints, ground poses, stats); pairs maps
     (aerial, ground) to arrays matches (M, 2), scores, inliers, views (index into stats["views"]) and X
-    (the 3D point of each match, NaN without 3D)."""
+    (the 3D point of each match, NaN without 3D). `aerial_features` (image name -> keypoints and
+    descriptors of the matching features) lets the aerial points be completed over all those images."""
     conf = _merge(default_conf, conf)
     views = sorted(views, key=lambda v: v.name)
     view_names = [v.name for v in views]
@@ -541,6 +563,10 @@ def reduce_views(
                     )
             else:
                 keypoints[n] = kp
+    for n, f in sorted((aerial_features or {}).items()):
+        if n in keypoints and keypoints[n].shape != f["keypoints"].shape:
+            raise ValueError(f"keypoints of {n} differ between the match files and the feature cache")
+        keypoints.setdefault(n, np.asarray(f["keypoints"]))
     # 1. observations of every image through every view
     parts: dict[str, list[dict]] = {}
     for i, v in enumerate(views):
@@ -557,6 +583,16 @@ def reduce_views(
         pts, pts_obs, rej = aerial_points(views, aerial_cameras, aerial_poses, keypoints, obs, conf)
         stats["aerial_points"] = len(pts["X"])
         stats["aerial_rejected"] = rej
+        if aerial_features and conf["tracks"]["enabled"]:
+            pts_obs, stats["tracks"] = complete_tracks(
+                conf["tracks"],
+                pts["X"],
+                pts_obs,
+                aerial_cameras,
+                aerial_poses,
+                {n: f["keypoints"] for n, f in aerial_features.items()},
+                {n: f["descriptors"] for n, f in aerial_features.items()},
+            )
         if conf["link"]["mode"] == "identity":  # only the same render keypoint (the paper)
             big = np.int64(1) << 32
             pkey = pts["view"] * big + pts["ir"]
@@ -731,8 +767,10 @@ def main(
     georef: str | Path,
     out_dir: str | Path,
     database: bool = True,
+    features: str | Path | None = None,
 ) -> Path:
-    """Run the reducer; returns out_dir/matches.h5 (see the module docstring for the other outputs)."""
+    """Run the reducer; returns out_dir/matches.h5 (see the module docstring for the other outputs).
+    `features`: the matching features' cache (services.features), for the aerial track completion."""
     conf = _merge(default_conf, conf)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -742,8 +780,9 @@ def main(
         cams = read_cameras_json(cameras) if isinstance(cameras, str | Path) else dict(cameras)
         a_cams, a_poses = read_model(sparse)
         priors, prior_std = ground_priors(pos, georef)
+        a_feats = load_aerial_features(features, sorted(a_poses)) if features is not None else None
         pairs, keypoints, poses, stats = reduce_views(
-            views, a_cams, a_poses, cams["ground"], priors, prior_std, conf
+            views, a_cams, a_poses, cams["ground"], priors, prior_std, conf, a_feats
         )
         sizes = {}
         for n in keypoints:
