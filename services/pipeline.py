@@ -327,6 +327,8 @@ def _aerial_sfm(job: Job, report) -> dict:
     from services.colmap_model import read_cameras_json
 
     cams = read_cameras_json(job.inputs["cameras"]) if job.inputs.get("cameras") else None
+    if not cams or "ground" not in cams:
+        ground_camera_from_exif(job)  # fail before the SfM when the ground images' intrinsics are unknown
     report(0.0, "aerial structure from motion")
     sfm.main(job.sfm_conf(), job.image_dir, job.dir("sfm"), job.pos, cams, image_set="aerial")
     write_job_cameras(job)
@@ -346,15 +348,20 @@ def write_job_cameras(job: Job) -> Path:
         model_cams, _ = read_model(job.dir("sfm") / "sparse")
         cams["aerial"] = next(iter(model_cams.values()))
     if "ground" not in cams:
-        from services.pos import camera_from_exif, read_exif
-        from shared.images import list_images
-
-        ground = [n for n in list_images(job.image_dir, ("ground",))]
-        cam = camera_from_exif(read_exif(job.image_dir / ground[0])) if ground else None
-        if cam is None:
-            raise ValueError("no cameras.json and no focal length in the ground images' EXIF")
-        cams["ground"] = cam
+        cams["ground"] = ground_camera_from_exif(job)
     return write_cameras_json(job.cameras, cams)
+
+
+def ground_camera_from_exif(job: Job):
+    """The ground camera from the first ground image's EXIF; ValueError when it has no focal length."""
+    from services.pos import camera_from_exif, read_exif
+    from shared.images import list_images
+
+    ground = list_images(job.image_dir, ("ground",))
+    cam = camera_from_exif(read_exif(job.image_dir / ground[0])) if ground else None
+    if cam is None:
+        raise ValueError("no cameras.json and no focal length in the ground images' EXIF")
+    return cam
 
 
 def _train_splat(job: Job, report) -> dict:
