@@ -254,6 +254,78 @@ def evaluate_matches(
     return summary
 
 
+def pair_bound(
+    kp_a: np.ndarray,
+    kp_g: np.ndarray,
+    cam_a: Camera,
+    pose_a: Pose,
+    depth_a: np.ndarray,
+    cam_g: Camera,
+    pose_g: Pose,
+    depth_g: np.ndarray,
+    conf: dict,
+) -> int:
+    """The most GT-correct one-to-one matches any matcher could find between two keypoint sets: a
+    maximum bipartite matching over the keypoint pairs that pass `gt_correct_mask`."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import maximum_bipartite_matching
+    from scipy.spatial import cKDTree
+
+    if len(kp_a) == 0 or len(kp_g) == 0:
+        return 0
+    args = (conf["depth_interp"], conf["occlusion_rel"], conf["occlusion_abs"])
+    uv, vis = _transfer(kp_g, cam_g, pose_g, depth_g, cam_a, pose_a, depth_a, *args)
+    near = cKDTree(kp_a).query_ball_point(np.where(vis[:, None], uv, -1e9), r=conf["gt_px"])
+    cand = np.array([(j, i) for i, js in enumerate(near) for j in js], np.int64).reshape(-1, 2)
+    if len(cand) == 0:
+        return 0
+    ok = gt_correct_mask(
+        kp_a[cand[:, 0]],
+        kp_g[cand[:, 1]],
+        cam_a,
+        pose_a,
+        depth_a,
+        cam_g,
+        pose_g,
+        depth_g,
+        conf["gt_px"],
+        *args,
+    )
+    cand = cand[ok]
+    if len(cand) == 0:
+        return 0
+    graph = csr_matrix((np.ones(len(cand)), (cand[:, 1], cand[:, 0])), shape=(len(kp_g), len(kp_a)))
+    return int((maximum_bipartite_matching(graph, perm_type="column") >= 0).sum())
+
+
+def keypoint_bound(scene_dir: Path, match_file: Path, conf: dict | None = None) -> dict:
+    """Upper bound of GT-correct matches with the keypoints of a match file: per co-visible pair the
+    maximum one-to-one matching among its keypoint pairs that are GT-correct (`pair_bound`). No matcher
+    that outputs those keypoints can do better; summed over the pairs, with the NMP it would allow."""
+    conf = {**default_conf, **(conf or {})}
+    scene_dir = require_scene(Path(scene_dir), "gt/sparse", "gt/depth.h5", "gt/covisible.csv")
+    cams, poses = read_gt_model(scene_dir)
+    pairs = read_covisible(scene_dir / "gt" / "covisible.csv", conf["min_overlap"])
+    per = []
+    with _open_match_file(Path(match_file)) as mf, DepthMaps(scene_dir / "gt" / "depth.h5") as depths:
+        have = set(mf.image_names())
+        for a, g, _ in pairs:
+            if not {a, g} <= have:
+                per.append(0)
+                continue
+            kp_a, kp_g = mf.keypoints(a).astype(np.float64), mf.keypoints(g).astype(np.float64)
+            per.append(
+                pair_bound(kp_a, kp_g, cams[a], poses[a], depths[a], cams[g], poses[g], depths[g], conf)
+            )
+    per_a = np.array(per, float)
+    return {
+        "num_pairs": len(pairs),
+        "total": int(per_a.sum()),
+        "mean": float(per_a.mean()) if len(per_a) else 0.0,
+        "nmp": int((per_a >= conf["nmp_min_correct"]).sum()),
+    }
+
+
 def write_outputs(out_dir: Path, rows: list[dict], summary: dict) -> None:
     """per_pair.csv and summary.json."""
     out_dir.mkdir(parents=True, exist_ok=True)
