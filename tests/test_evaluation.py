@@ -17,6 +17,7 @@ from services.evaluation import (
     evaluate_matches,
     evaluate_sfm,
     gt_correct_mask,
+    keypoint_bound,
     lookup_depth,
     print_sfm_table,
     print_summary_table,
@@ -203,6 +204,26 @@ def test_mixed_precision_nmp_and_missing_pair(scene, tmp_path):
 
     s = evaluate_matches(scene, mfile, conf={"min_overlap": 0.0})
     assert s["num_pairs"] == 3 and s["nmp"] == 1
+
+
+def test_keypoint_bound_counts_what_any_matcher_could_find(scene, tmp_path):
+    """The bound is the number of GT-correct keypoint pairs one-to-one, whatever the file's matches:
+    planted pairs count (shuffled matches or none), shifted or duplicated keypoints do not add."""
+    kp_a, kp_g = planted(A1, G1, 40)
+    rng = np.random.default_rng(1)
+    far = kp_g[:10] + [40.0, 0.0]  # keypoints of G1 with no correct partner in A1
+    near_dup = kp_a[:5] + [0.4, 0.0]  # second A1 keypoints next to correct ones: one-to-one keeps one each
+    ka = np.concatenate([kp_a, near_dup])
+    kg = np.concatenate([kp_g, far])
+    path = tmp_path / "bound.h5"
+    with MatchFile(path, "w", method="bound") as mf:
+        mf.add_keypoints(A1, ka, (320, 240))
+        mf.add_keypoints(G1, kg, (320, 240))
+        m = np.stack([rng.permutation(len(ka))[:20], rng.permutation(len(kg))[:20]], 1)  # wrong matches
+        mf.add_pair(PairMatches(A1, G1, m, np.ones(20)))
+    b = keypoint_bound(scene, path, {"nmp_min_correct": 40})
+    assert b["num_pairs"] == 2 and b["total"] == 40 and b["nmp"] == 1  # A1-G2: G2 has no keypoints here
+    assert evaluate_matches(scene, path)["total_gt_correct"] < b["total"]
 
 
 def test_orientation_and_own_ransac(scene, tmp_path):
