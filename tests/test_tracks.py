@@ -4,18 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.colmap_model import Camera, Pose
+from services.colmap_model import Camera
 from services.tracks import complete_tracks, guided_matches
+from services.viewpoints import look_at
 
 CAM = Camera("PINHOLE", 400, 300, [350.0, 350.0, 200.0, 150.0])
-
-
-def look_at(center, target) -> Pose:
-    c, z = np.asarray(center, float), np.asarray(target, float) - center
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return Pose.from_center(np.stack([x, np.cross(z, x), z], 1), c)
 
 
 def unit(v):
@@ -29,9 +22,9 @@ def scene(n: int = 30, seed: int = 0):
     rng = np.random.default_rng(seed)
     X = np.c_[rng.uniform(-5, 5, n), np.zeros(n), rng.uniform(0, 6, n)]
     poses = {
-        "aerial/A.jpg": look_at([0, -40, 30], [0, 0, 3]),
-        "aerial/B.jpg": look_at([11, -38, 30], [0, 0, 3]),
-        "aerial/C.jpg": look_at([0, 40, 30], [0, 0, 3]),
+        "aerial/A.jpg": look_at(np.array([0.0, -40, 30]), np.array([0.0, 0, 3])),
+        "aerial/B.jpg": look_at(np.array([11.0, -38, 30]), np.array([0.0, 0, 3])),
+        "aerial/C.jpg": look_at(np.array([0.0, 40, 30]), np.array([0.0, 0, 3])),
     }
     desc = unit(rng.normal(size=(n, 64)))
     kps, descs = {}, {}
