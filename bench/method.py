@@ -2,6 +2,7 @@
 
     python bench/method.py [--preset small] [--seed 0] [--renderers gt,splat]
                            [--planners paper,ground-aware,both] [--views 2] [--max-keypoints 1024]
+                           [--matchers aliked-lightglue,sift] [--sift-keypoints 8192]
                            [--splat-steps 1500] [--adopt-sfm DIR] [--adopt-splat DIR] [--out DIR]
 
 One aerial SfM (and one 3DGS model) is shared by every configuration: a base job runs aerial_sfm and
@@ -12,7 +13,10 @@ would reach). Baselines: direct ALIKED+LightGlue on the POS pairs with the same 
 as midview, and, when bench/baselines.py has been run on the scene, its SIFT and ALIKED+LightGlue (2048
 keypoints) match files. Everything is evaluated on the co-visible pairs of the ground truth (GT-correct:
 within 3 px through the true depth), the combined reconstructions with `evaluate_sfm`, and the PnP
-ground-camera poses of the reducer against the true camera centres.
+ground-camera poses of the reducer against the true camera centres. The keypoint bound of each match file
+(services.evaluation.keypoint_bound) says how many GT-correct matches its keypoints allow at most: a
+method cannot exceed it whatever it matches. Matchers of the views: "aliked-lightglue" (--max-keypoints)
+and "sift" (--sift-keypoints, at 1600 px), each a configuration of its own (job folder suffix -sift).
 """
 
 from __future__ import annotations
@@ -168,7 +172,13 @@ def main(argv: list[str] | None = None) -> int:
         "--planners", default="paper,ground-aware,both", help="comma-separated: paper, ground-aware, both"
     )
     ap.add_argument("--views", type=int, default=2, help="views per ground image")
-    ap.add_argument("--max-keypoints", type=int, default=1024)
+    ap.add_argument("--max-keypoints", type=int, default=1024, help="ALIKED keypoints per image")
+    ap.add_argument(
+        "--matchers",
+        default="aliked-lightglue",
+        help="comma-separated: aliked-lightglue, sift (views' matcher)",
+    )
+    ap.add_argument("--sift-keypoints", type=int, default=8192, help="SIFT features per image (matcher sift)")
     ap.add_argument("--splat-steps", type=int, default=1500)
     ap.add_argument("--splat-max-width", type=int, default=400)
     ap.add_argument("--torch-threads", type=int, default=1)
@@ -181,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from services.evaluation import evaluate_matches, evaluate_sfm, print_summary_table
+    from services.evaluation import evaluate_matches, evaluate_sfm, keypoint_bound, print_summary_table
 
     console = Console(width=None if sys.stdout.isatty() else 150)
     tag = f"{args.preset}-seed{args.seed}"
@@ -193,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     renderers = [r.strip() for r in args.renderers.split(",") if r.strip()]
     planners = [p.strip() for p in args.planners.split(",") if p.strip()]
     planners = [p for p in ("paper", "ground-aware", "both") if p in planners]  # "both" last
+    matchers = [m.strip() for m in args.matchers.split(",") if m.strip()]
     options = {
         "views_per_ground_image": args.views,
         "max_keypoints": args.max_keypoints,
@@ -230,32 +241,41 @@ def main(argv: list[str] | None = None) -> int:
     timings["base"] = time.perf_counter() - t0
     for s, r in res.items():
         timings[f"base:{s}"] = float(r.get("seconds", 0.0))
-    jobs: dict[tuple[str, str], pipeline.Job] = {}
+    jobs: dict[tuple[str, str, str], pipeline.Job] = {}
     stages = ["plan_views", "render_views", "match_views", "reduce"] + (
         [] if args.no_sfm else ["combined_sfm"]
     )
-    for r in renderers:
-        for p in planners:
-            name = f"{r}-{p}"
-            job = make_job(
-                out / name,
-                scene,
-                {**options, "view_planner": p, "stages": ["aerial_sfm", "train_splat", *stages]},
-                {**settings, "renderer": r},
-            )
-            link_base(job, base)
-            if p == "both":
-                seed_matches(job, [jobs[(r, q)] for q in ("paper", "ground-aware") if (r, q) in jobs])
-            t0 = time.perf_counter()
-            res = pipeline.run(
-                job,
-                stages=stages,
-                progress=lambda s, f, m, n=name: logger.info("[%s %s] %3.0f%% %s", n, s, 100 * f, m),
-            )
-            timings[name] = time.perf_counter() - t0
-            for s, rr in res.items():
-                timings[f"{name}:{s}"] = float(rr.get("seconds", 0.0)) if not rr.get("skipped") else 0.0
-            jobs[(r, p)] = job
+    for mt in matchers:
+        for r in renderers:
+            for p in planners:
+                name = config_name(r, p, mt)
+                keypoints = args.max_keypoints if mt == "aliked-lightglue" else args.sift_keypoints
+                job = make_job(
+                    out / name,
+                    scene,
+                    {
+                        **options,
+                        "view_planner": p,
+                        "matcher": mt,
+                        "max_keypoints": keypoints,
+                        "stages": ["aerial_sfm", "train_splat", *stages],
+                    },
+                    {**settings, "renderer": r},
+                )
+                link_base(job, base)
+                if p == "both":
+                    same = [jobs[(r, q, mt)] for q in ("paper", "ground-aware") if (r, q, mt) in jobs]
+                    seed_matches(job, same)
+                t0 = time.perf_counter()
+                res = pipeline.run(
+                    job,
+                    stages=stages,
+                    progress=lambda s, f, m, n=name: logger.info("[%s %s] %3.0f%% %s", n, s, 100 * f, m),
+                )
+                timings[name] = time.perf_counter() - t0
+                for s, rr in res.items():
+                    timings[f"{name}:{s}"] = float(rr.get("seconds", 0.0)) if not rr.get("skipped") else 0.0
+                jobs[(r, p, mt)] = job
     # baselines
     files: dict[str, Path] = {}
     bl = ROOT / "runs" / "bench" / f"baselines-{tag}"
@@ -268,18 +288,35 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     files[f"direct ALIKED+LightGlue ({args.max_keypoints})"] = direct_same_budget(scene, base, out)
     timings["direct same budget"] = time.perf_counter() - t0
-    for (r, p), job in jobs.items():
-        files[f"midview {r} {p}"] = job.dir("transfer") / "matches.h5"
+    for (r, p, mt), job in jobs.items():
+        files[f"midview {config_name(r, p, mt).replace('-', ' ', 1)}"] = job.dir("transfer") / "matches.h5"
     rows = []
     for label, path in files.items():
         s = evaluate_matches(
             scene, path, out / "eval" / label.replace(" ", "_").replace("(", "").replace(")", "")
         )
         s["method"] = label
+        s["bound"] = keypoint_bound(scene, path)
         rows.append(s)
     print_summary_table(
         rows, title=f"Aerial-ground matches, {args.preset} (means over the co-visible pairs)", console=console
     )
+    # what any matcher could reach with each file's keypoints (services.evaluation.keypoint_bound)
+    bt = Table(title="Keypoint bound: the most GT-correct matches possible with each method's keypoints")
+    for col in ("method", "GT-correct", "bound", "of the bound", "NMP", "NMP bound"):
+        bt.add_column(col, justify="left" if col == "method" else "right")
+    for s in rows:
+        b = s["bound"]
+        frac = s["total_gt_correct"] / b["total"] if b["total"] else 0.0
+        bt.add_row(
+            s["method"],
+            str(s["total_gt_correct"]),
+            str(b["total"]),
+            f"{frac:.2f}",
+            str(s["nmp"]),
+            str(b["nmp"]),
+        )
+    console.print(bt)
     sfm_rows = {}
     table = Table(
         title="Ground cameras: PnP poses of the reducer and the combined reconstruction (errors in m)"
@@ -297,13 +334,14 @@ def main(argv: list[str] | None = None) -> int:
         "N3P",
     ):
         table.add_column(col, justify="left" if col == "config" else "right")
-    for (r, p), job in jobs.items():
+    for (r, p, mt), job in jobs.items():
         pa = pnp_accuracy(scene, job)
+        label = config_name(r, p, mt).replace("-", " ", 1)
         nv = len(json.loads((job.dir("views") / "views.json").read_text())["views"])
         row = {"pnp": pa, "num_views": nv}
-        cells = [f"{r} {p}", str(nv), pa["accepted"], _f(pa["mean_m"]), _f(pa["max_m"])]
+        cells = [label, str(nv), pa["accepted"], _f(pa["mean_m"]), _f(pa["max_m"])]
         if not args.no_sfm:
-            ev = evaluate_sfm(scene, job.dir("combined") / "sparse", out / "eval" / f"sfm-{r}-{p}")
+            ev = evaluate_sfm(scene, job.dir("combined") / "sparse", out / "eval" / f"sfm-{job.root.name}")
             ps = ev["per_set"]
             row["sfm"] = ev
             cells += [
@@ -316,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             cells += ["-"] * 5
         table.add_row(*cells)
-        sfm_rows[f"{r} {p}"] = row
+        sfm_rows[label] = row
     console.print(table)
     ref = next((s for s in rows if s["method"].startswith("direct ALIKED+LightGlue (2048")), None)
     if ref is not None:
@@ -344,6 +382,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     console.print(f"report: {out / 'method.json'}")
     return 0
+
+
+def config_name(renderer: str, planner: str, matcher: str) -> str:
+    """The job folder of a configuration: RENDERER-PLANNER, with -sift for the SIFT matcher."""
+    return f"{renderer}-{planner}" + ("" if matcher == "aliked-lightglue" else f"-{matcher}")
 
 
 def _f(v) -> str:
