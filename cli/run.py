@@ -32,7 +32,7 @@ DEMO_OPTIONS = {
     "matcher": "aliked-lightglue",
     "view_planner": "paper",  # the best single planner (bench/method.py); "both" is better, twice the views
     "views_per_ground_image": 2,
-    "splat_steps": 1000,
+    "splat_steps": 3000,  # 1000 steps: GT-correct 0.6 per pair, 3000: 3.4 (the 3DGS is what limits it)
     "splat_max_width": 400,
     "max_keypoints": 1024,
     "seed": 0,
