@@ -380,6 +380,19 @@ def _train_splat(job: Job, report) -> dict:
     )
 
 
+def splat_inputs_digest(sparse: Path, names: list[str], image_dir: Path) -> str:
+    """sha256 of the sparse model's files (contents) and the training images' names and sizes: what the
+    checkpoints of a 3DGS training were made from (contents, not times, so it holds across copies)."""
+    h = hashlib.sha256()
+    for f in sorted(p for p in Path(sparse).iterdir() if p.is_file()):
+        h.update(f.name.encode())
+        h.update(hashlib.sha256(f.read_bytes()).digest())
+    for n in sorted(names):
+        p = Path(image_dir) / n
+        h.update(f"{n}:{p.stat().st_size if p.exists() else -1}".encode())
+    return h.hexdigest()
+
+
 def train_splat(conf: dict, sparse: Path, image_dir: Path, out: Path, backend: str, report) -> dict:
     """services.splat training in chunks (checkpoint at each), so that progress can be reported and a
     killed run resumes from its last chunk."""
@@ -389,10 +402,16 @@ def train_splat(conf: dict, sparse: Path, image_dir: Path, out: Path, backend: s
     out.mkdir(parents=True, exist_ok=True)
     data = load_scene(sparse, image_dir, conf["max_width"], "aerial/", conf["test_every"])
     trainer = Trainer(conf, data, out, backend)
-    conf_file = out / "conf.json"
-    if conf_file.is_file() and json.loads(conf_file.read_text()) != json.loads(json.dumps(trainer.conf)):
-        shutil.rmtree(out / "ckpts", ignore_errors=True)  # checkpoints of another conf: start afresh
+    conf_file, inputs_file = out / "conf.json", out / "inputs.sha256"
+    inputs = splat_inputs_digest(sparse, [v.name for v in data.views], image_dir)
+    same_conf = conf_file.is_file() and json.loads(conf_file.read_text()) == json.loads(
+        json.dumps(trainer.conf)
+    )
+    same_inputs = inputs_file.is_file() and inputs_file.read_text().strip() == inputs
+    if not (same_conf and same_inputs):  # checkpoints of another conf or another model: start afresh
+        shutil.rmtree(out / "ckpts", ignore_errors=True)
     conf_file.write_text(json.dumps(trainer.conf, indent=1))
+    inputs_file.write_text(inputs + "\n")
     write_views(data.views, out / "views.json")
     steps = int(trainer.conf["steps"])
     chunk = int(trainer.conf["ckpt_every"])

@@ -393,3 +393,34 @@ def test_lowered_views_look_like_the_scene(tiny_survey, tmp_path):
     assert p >= min_psnr and c >= min_ncc and s > 0.5, table
     for k, (pk, _, ck) in mean.items():  # every broken model fails a criterion
         assert pk < min_psnr or ck < min_ncc, f"{k} passes: the thresholds do not tell; {table}"
+
+
+def test_pipeline_training_restarts_when_the_model_changes(tiny, tmp_path):
+    """services.pipeline.train_splat resumes from its checkpoints only when they were made from the same
+    sparse model and images: a changed model (an aerial SfM that ran again) starts training afresh."""
+    from services import pipeline
+
+    model, _, pts, cols = tiny
+    images = {}
+    for i, pose in enumerate(_poses()):
+        name = f"aerial/A{i:04d}.png"
+        img = render(model, CAM, pose, backend="cpu")["color"]
+        (tmp_path / "images" / "aerial").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(tmp_path / "images" / name), (img[..., ::-1] * 255).round().astype(np.uint8))
+        images[name] = ("aerial", pose)
+    write_model(tmp_path / "sparse", {"aerial": CAM}, images, pts, (cols * 255).astype(np.uint8))
+    conf = _merge(confs["fast"], {**_tiny_conf(steps=20), "ckpt_every": 10, "max_width": W})
+    steps_seen: list[str] = []
+
+    def train() -> None:
+        steps_seen.clear()
+        pipeline.train_splat(conf, tmp_path / "sparse", tmp_path / "images", tmp_path / "out", "cpu",
+                             lambda f, m: steps_seen.append(m))  # fmt: skip
+
+    train()
+    assert steps_seen[0].startswith("step 10/20")
+    train()  # same model: resumed at the end, nothing trained
+    assert steps_seen[0].startswith("step 20/20")
+    write_model(tmp_path / "sparse", {"aerial": CAM}, images, pts + 0.05, (cols * 255).astype(np.uint8))
+    train()  # another model: from the start
+    assert steps_seen[0].startswith("step 10/20")
