@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-import servers  # noqa: E402  (tests/servers.py: PostgreSQL, SeaweedFS helpers)
+import servers  # noqa: E402  (tests/servers.py: PostgreSQL, SeaweedFS, uvicorn helpers)
 
 WORKER_OPTIONS = {  # as tests/test_service_e2e.py: small enough for `tiny` on 2 cores
     "view_planner": "ground-aware",
@@ -209,17 +209,9 @@ class Stack:
         self.env = env
 
     def start_api(self) -> str:
-        import httpx
-
-        (port,) = servers.free_ports(1)
-        log = self.tmp / "uvicorn.log"
-        args = [sys.executable, "-m", "uvicorn", "--factory", "api.main:create_app", "--host", "127.0.0.1",
-                "--port", str(port), "--log-level", "warning", "--no-access-log"]  # fmt: skip
-        proc = servers._spawn(args, log, cwd=ROOT, env=self.env)
-        self.procs.append(proc)
-        base = f"http://127.0.0.1:{port}"
-        wait_until(lambda: httpx.get(f"{base}/healthz").status_code == 200, 60, "uvicorn", proc, log)
-        return base
+        server = servers.start_uvicorn(self.env, self.tmp / "uvicorn.log", cwd=ROOT)
+        self.procs.append(server.proc)
+        return server.base_url
 
     def start_worker(self, i: int) -> Any:
         folder = self.tmp / f"worker{i}"

@@ -199,6 +199,33 @@ def worker_environment(settings, work_dir):
     return env
 
 
+def settings_environment(settings):
+    """os.environ without its MIDVIEW_* variables, plus MIDVIEW_<FIELD> for every field of settings that
+    is not None: the Settings (ApiSettings) of a process started with it equal these (an API process)."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
+    values = settings.model_dump()
+    env.update({f"MIDVIEW_{k.upper()}": str(v) for k, v in values.items() if v is not None})
+    env["PYTHONUNBUFFERED"] = "1"
+    env["OMP_NUM_THREADS"] = "1"
+    return env
+
+
+@pytest.fixture(scope="module")
+def api_server(service_settings, tmp_path_factory):
+    """The API with service_settings (Celery dispatcher) in a uvicorn process: an object with base_url
+    (http://127.0.0.1:PORT), proc and log; stopped at the end of the module."""
+    from servers import start_uvicorn
+
+    log = tmp_path_factory.mktemp("uvicorn") / "uvicorn.log"
+    server = start_uvicorn(settings_environment(service_settings), log)
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
 class CeleryWorkerProcess:
     """A `celery worker` subprocess of the test service (its log in `log`)."""
 

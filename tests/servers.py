@@ -1,6 +1,6 @@
 """Real servers for tests: PostgreSQL (throwaway databases), Redis (an empty db, or a private server) and
 SeaweedFS as S3 (a private `weed mini`). Each fixture skips with the reason when its server is missing.
-Imported by conftest.py."""
+Also the API in a uvicorn process (start_uvicorn). Imported by conftest.py and bench/service.py."""
 
 from __future__ import annotations
 
@@ -369,3 +369,52 @@ def s3_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[S3Server]:
             for sock in Path("/tmp").glob(f"seaweedfs-*-{port}.sock"):
                 sock.unlink(missing_ok=True)
         shutil.rmtree(folder / "data", ignore_errors=True)  # keep weed.log for a post-mortem
+
+
+# the API (uvicorn)
+@dataclass
+class UvicornServer:
+    """A uvicorn process serving the API at base_url (http://127.0.0.1:PORT), its output in log."""
+
+    proc: subprocess.Popen
+    base_url: str
+    log: Path
+
+    def stop(self, timeout: float = 10.0) -> None:
+        _stop(self.proc, timeout)
+
+
+def start_uvicorn(
+    env: dict[str, str],
+    log: Path,
+    cwd: Path | None = None,
+    app: str = "api.main:create_app",
+    timeout: float = 60.0,
+    log_level: str = "warning",
+) -> UvicornServer:
+    """uvicorn serving the app factory `app` on a free port of 127.0.0.1 in its own process, configured
+    by env (its MIDVIEW_* variables); returns once GET /healthz answers 200. Another try on a new port
+    when the chosen one was taken meanwhile; RuntimeError with the log's tail when it does not start."""
+    import httpx
+
+    cwd = cwd or Path(__file__).resolve().parents[1]
+    for _ in range(3):
+        (port,) = free_ports(1)
+        args = [sys.executable, "-m", "uvicorn", "--factory", app, "--host", "127.0.0.1", "--port", str(port),
+                "--log-level", log_level, "--no-access-log"]  # fmt: skip
+        proc = _spawn(args, log, cwd=cwd, env=env)
+        base = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + timeout
+        while proc.poll() is None:
+            try:
+                if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
+                    return UvicornServer(proc, base, log)
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                _stop(proc)
+                raise RuntimeError(f"uvicorn not answering {base}/healthz after {timeout} s:\n{_tail(log)}")
+            time.sleep(0.2)
+        if "address already in use" not in _tail(log).lower():
+            break
+    raise RuntimeError(f"uvicorn exited with {proc.returncode}:\n{_tail(log)}")

@@ -1,7 +1,8 @@
-"""The distributed service end to end: the synthetic `tiny` survey uploaded over HTTP (FastAPI app,
-PostgreSQL, SeaweedFS), a job run by a real Celery worker process through Redis, its results compared with
-the pipeline run in one process on the same input (what `midview run` does); then the job rerun from
-match_views with the worker's pool process killed (SIGKILL) in the middle of a view-matching task.
+"""The distributed service end to end: the synthetic `tiny` survey uploaded over HTTP to the API served by
+a uvicorn process (PostgreSQL, SeaweedFS S3, the Celery dispatcher), a job run by a real Celery worker
+process through Redis, its results downloaded through their presigned S3 URLs and compared with those of
+the `midview run` command on the same input; then the job rerun from match_views with the worker's pool
+process killed (SIGKILL) in the middle of a view-matching task.
 
 Both sides run with MIDVIEW_NUM_THREADS=1 (COLMAP) and torch_threads 1: with one thread every stage is
 deterministic, so the results must be identical, not just close. (With several threads COLMAP's mapper
@@ -10,6 +11,7 @@ is not: the number of 3D points of `tiny` varies by a few between runs.)
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import signal
@@ -22,13 +24,17 @@ from pathlib import Path
 
 import pytest
 from conftest import upload_survey, wait_for_job, worker_environment
+from servers import S3Server
 
 from shared.job_options import STAGES
 
 pytestmark = pytest.mark.slow
 
-# small enough for `tiny` on 2 CPU cores (about a minute for the whole pipeline)
+# small enough for `tiny` on 2 CPU cores (about a minute for the whole pipeline); every option but
+# `stages` (all of them on both sides) is given, so that neither side's defaults matter
 OPTIONS = {
+    "sfm_features": "sift",
+    "matcher": "aliked-lightglue",
     "view_planner": "ground-aware",
     "views_per_ground_image": 1,
     "splat_steps": 1000,  # 300 gives views that match nothing at all on `tiny`
@@ -39,40 +45,58 @@ OPTIONS = {
 JOB_TIMEOUT_S = 360
 ROOT = Path(__file__).resolve().parents[1]
 
-LOCAL_RUN = """
-import json, sys
-from services import pipeline
-scene, out, options = sys.argv[1], sys.argv[2], json.loads(sys.argv[3])
-from pathlib import Path
-s = Path(scene)
-job = pipeline.Job.create(out, s / "images" / "aerial", s / "images" / "ground", s / "pos.csv",
-                          s / "cameras.json", options=options, settings={"torch_threads": 1})
-res = pipeline.run(job)
-print(json.dumps({k: v["summary"] for k, v in res.items()}, default=str))
-"""
+
+def midview_command() -> list[str]:
+    """The `midview` console script of this environment, else the same app through `python -m`."""
+    exe = Path(sys.executable).with_name("midview")
+    return [str(exe)] if exe.is_file() else [sys.executable, "-m", "cli.main"]
+
+
+def midview_run_args(scene: Path, out: Path, options: dict) -> list[str]:
+    """`midview run` on a survey folder with the job options as flags, with one torch thread."""
+    flags = [a for k, v in options.items() for a in (f"--{k.replace('_', '-')}", str(v))]
+    images = scene / "images"
+    return [*midview_command(), "run", str(images / "aerial"), str(images / "ground"), str(scene / "pos.csv"),
+            str(out), "--cameras", str(scene / "cameras.json"), *flags,
+            "--torch-threads", "1"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
-def service(service_settings, celery_worker):
-    from fastapi.testclient import TestClient
+def service(service_settings, api_server, celery_worker, s3_server: S3Server):
+    """An httpx client of the API's uvicorn process over 127.0.0.1, a new tenant, and (to look behind the
+    API) the database and the storage of the service."""
+    import httpx
 
     from api.bootstrap import create_tenant_with_key
-    from api.main import create_app
     from shared.db import crud
+    from shared.db.session import make_engine, make_sessionmaker
+    from shared.storage import get_storage
 
-    app = create_app(service_settings)
-    with TestClient(app) as client:
-        with app.state.sessionmaker() as s:
-            key = create_tenant_with_key(s, f"e2e-{uuid.uuid4().hex[:8]}")
-            tenant_id = crud.get_api_key(s, key).tenant_id
+    settings = service_settings
+    engine = make_engine(settings.database_url)
+    session = make_sessionmaker(engine)
+    try:
+        with session() as s:
+            key = create_tenant_with_key(s, f"e2e-{uuid.uuid4().hex[:8]}", pepper=settings.api_key_pepper)
+            tenant_id = crud.get_api_key(s, key, pepper=settings.api_key_pepper).tenant_id
             s.commit()
         tenant = types.SimpleNamespace(id=tenant_id, headers={"Authorization": f"Bearer {key}"})
-        yield types.SimpleNamespace(
-            app=app, client=client, tenant=tenant, worker=celery_worker, storage=app.state.storage
-        )
+        with httpx.Client(base_url=api_server.base_url, timeout=120) as client:
+            yield types.SimpleNamespace(
+                client=client,
+                api=api_server,
+                s3=s3_server,
+                settings=settings,
+                session=session,
+                storage=get_storage(settings),
+                tenant=tenant,
+                worker=celery_worker,
+            )
+    finally:
+        engine.dispose()
 
 
-# outputs that must be byte-identical to the local run's
+# outputs that must be byte-identical to those of `midview run`
 BYTE_EQUAL = (
     "sfm/sparse/points3D.bin",
     "sfm/sparse/images.bin",
@@ -83,8 +107,6 @@ BYTE_EQUAL = (
 
 
 def _sha256(path: Path) -> str:
-    import hashlib
-
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
@@ -101,7 +123,7 @@ def _service_view_matches(service, job_id: str, folder: Path) -> dict[str, dict[
     from shared.storage.keys import job_prefix
     from workers.jobsync import files_key
 
-    with service.app.state.sessionmaker() as s:
+    with service.session() as s:
         from shared.db.models import Job
 
         row = s.get(Job, job_id)
@@ -113,11 +135,24 @@ def _service_view_matches(service, job_id: str, folder: Path) -> dict[str, dict[
     return out
 
 
-def _download(service, job_id: str, name: str, dest: Path) -> Path:
-    c, h = service.client, service.tenant.headers
-    arts = {a["name"]: a for a in c.get(f"/jobs/{job_id}/artifacts", headers=h).json()}
-    r = c.get(f"/artifacts/{arts[name]['id']}/download", headers=h)
+def _artifacts(service, job_id: str) -> dict[str, dict]:
+    """{name: artifact} of GET /jobs/{id}/artifacts."""
+    r = service.client.get(f"/jobs/{job_id}/artifacts", headers=service.tenant.headers)
     assert r.status_code == 200, r.text
+    return {a["name"]: a for a in r.json()}
+
+
+def _download(service, job_id: str, name: str, dest: Path) -> Path:
+    """The artifact's bytes from its presigned S3 URL (a plain GET, no API key), checked against the
+    size and sha256 the API lists."""
+    import httpx
+
+    art = _artifacts(service, job_id)[name]
+    url = art["download_url"]
+    assert url.startswith(f"{service.s3.endpoint_url}/") and "X-Amz-Signature=" in url, url
+    r = httpx.get(url, timeout=120)
+    assert r.status_code == 200, (url, r.text[:1000])
+    assert len(r.content) == art["size_bytes"] and hashlib.sha256(r.content).hexdigest() == art["sha256"]
     dest.parent.mkdir(parents=True, exist_ok=True)
     dest.write_bytes(r.content)
     return dest
@@ -125,18 +160,19 @@ def _download(service, job_id: str, name: str, dest: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def first_run(service, tiny_survey, tmp_path_factory):
-    """The job through the service and, at the same time, the same pipeline in one local process."""
+    """The job through the service and, at the same time, `midview run` on the same survey folder."""
     folder = tmp_path_factory.mktemp("e2e")
     local_root = folder / "local"
-    env = worker_environment(service.app.state.settings, folder / "unused")
+    env = worker_environment(service.settings, folder / "unused")  # MIDVIEW_NUM_THREADS=1 as the worker
     t_local = time.monotonic()
-    local = subprocess.Popen(
-        [sys.executable, "-c", LOCAL_RUN, str(tiny_survey), str(local_root), json.dumps(OPTIONS)],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=open(folder / "local.log", "wb"),
-    )
+    with open(folder / "local.log", "wb") as log:
+        local = subprocess.Popen(
+            midview_run_args(tiny_survey, local_root, OPTIONS),
+            cwd=ROOT,
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
     try:
         c, h = service.client, service.tenant.headers
         t0 = time.monotonic()
@@ -149,12 +185,19 @@ def first_run(service, tiny_survey, tmp_path_factory):
         t0 = time.monotonic()
         job = wait_for_job(c, h, job_id, JOB_TIMEOUT_S, seen)
         t_service = time.monotonic() - t0
-        out, _ = local.communicate(timeout=JOB_TIMEOUT_S)
+        local.wait(timeout=JOB_TIMEOUT_S)
         t_local = time.monotonic() - t_local
     finally:
         if local.poll() is None:
             local.kill()
-    assert local.returncode == 0, (folder / "local.log").read_text()[-3000:]
+    local_log = (folder / "local.log").read_text(errors="replace")
+    assert local.returncode == 0, local_log[-3000:]
+    assert "combined model: NRI" in local_log, local_log[-3000:]
+    # what `midview run` recorded of each stage (JOB/stages/STAGE.json), as pipeline.run returns it
+    local_summaries = {
+        stage: json.loads((local_root / "stages" / f"{stage}.json").read_text())["summary"]
+        for stage in STAGES
+    }
     print(
         f"\nupload {t_upload:.1f} s, service job {t_service:.1f} s, local run {t_local:.1f} s (in parallel)"
     )
@@ -163,7 +206,7 @@ def first_run(service, tiny_survey, tmp_path_factory):
         job=job,
         seen=seen,
         local_root=local_root,
-        local_summaries=json.loads(out.decode().strip().splitlines()[-1]),
+        local_summaries=local_summaries,
         folder=folder,
     )
 
@@ -178,8 +221,7 @@ def test_job_succeeds_with_every_stage(service, first_run):
     stages_seen = [st for _, st, _ in first_run.seen if st]
     assert stages_seen and stages_seen[-1] == "combined_sfm"
     assert {"match_views", "train_splat"} <= set(stages_seen)
-    arts = {a["name"]: a["kind"] for a in service.client.get(
-        f"/jobs/{first_run.job_id}/artifacts", headers=service.tenant.headers).json()}  # fmt: skip
+    arts = {name: a["kind"] for name, a in _artifacts(service, first_run.job_id).items()}
     for name, kind in [
         ("sfm/report.json", "report"),
         ("splat/point_cloud.ply", "splat"),
@@ -192,8 +234,11 @@ def test_job_succeeds_with_every_stage(service, first_run):
 
 
 def test_results_equal_the_local_run(service, first_run):
-    """Same registered images, same 3D points, same views, same matches per pair as the local run."""
+    """Same registered images, same 3D points, same views, same matches per pair as `midview run`; the
+    models downloaded from the service are the same bytes as its files."""
     job, local = first_run.job, first_run.local_summaries
+    # the command ran the job the service ran: same options
+    assert json.loads((first_run.local_root / "job.json").read_text())["options"] == job["options"]
     print("service:", json.dumps(job["metrics"]))
     print("local:  ", json.dumps(local))
     folder = first_run.folder / "service"
@@ -219,12 +264,14 @@ def test_results_equal_the_local_run(service, first_run):
     print("views:", views)
     assert views == local_views and views and sum(sum(v.values()) for v in views.values()) > 0
 
-    # the models are the same bytes (artifacts carry their sha256)
-    arts = {a["name"]: a for a in service.client.get(
-        f"/jobs/{first_run.job_id}/artifacts", headers=service.tenant.headers).json()}  # fmt: skip
+    # the models are the same bytes: the sha256 the API lists and the bytes downloaded
+    arts = _artifacts(service, first_run.job_id)
     same = {name: arts[name]["sha256"] == _sha256(lr / name) for name in BYTE_EQUAL}
     print("same bytes:", same)
     assert all(same.values()), same
+    for name in BYTE_EQUAL:
+        got = _download(service, first_run.job_id, name, folder / "files" / name)
+        assert got.read_bytes() == (lr / name).read_bytes(), name
 
     h5 = _download(service, first_run.job_id, "transfer/matches.h5", folder / "transfer.h5")
     assert _match_counts(h5) == _match_counts(lr / "transfer" / "matches.h5")
@@ -271,7 +318,7 @@ def test_killed_worker_process_mid_matching(service, first_run):
 
     assert first_run.job["status"] == "succeeded"
     c, h, job_id = service.client, service.tenant.headers, first_run.job_id
-    with service.app.state.sessionmaker() as s:
+    with service.session() as s:
         row = s.get(Job, job_id)
         prefix = job_prefix(row.project.tenant_id, row.project_id, row.id)
     for key in [
@@ -280,7 +327,7 @@ def test_killed_worker_process_mid_matching(service, first_run):
     ]:
         service.storage.delete(key)
 
-    rd = redis.Redis.from_url(service.app.state.settings.broker_url)
+    rd = redis.Redis.from_url(service.settings.broker_url)
     t0 = time.monotonic()
     r = c.post(f"/jobs/{job_id}/rerun", json={"from_stage": "match_views"}, headers=h)
     assert r.status_code == 200, r.text
