@@ -74,7 +74,7 @@ default_conf: dict[str, Any] = {
     "pnp": {
         "enabled": True,
         "ransac_px": 6.0,  # LO-RANSAC threshold (ground pixels)
-        "keep_px": 4.0,  # matches within this of the estimated pose are kept
+        "keep_px": 3.0,  # matches within this of the estimated pose are kept (the 3 px of GT-correct)
         # also use render-ground matches lifted by the rendered depth: False, True, or "trusted" (only
         # views whose rendered depth agrees with their triangulated aerial points: median relative
         # difference <= depth_trust; exact renders qualify, a CPU-trained 3DGS hardly does)
@@ -87,6 +87,13 @@ default_conf: dict[str, Any] = {
         "min_position_m": 5.0,  # ... but at least this far (horizontal) ...
         "min_height_m": 5.0,  # ... and this far (vertical) ...
         "min_rotation_deg": 10.0,  # ... and within this angle of the POS attitude
+        # and jointly: the squared normalized differences (horizontal 2, vertical 1, rotation 3 degrees of
+        # freedom, standard deviations at least the floors above / prior_sigmas) below this chi-square
+        # quantile (6 dof, 99.9 %): a pose off in several ways at once is no longer accepted
+        "prior_chi2": 22.46,
+        # keep the matches that agree with the PnP pose when enough do (min_inliers, min_inlier_ratio),
+        # even when the pose is not accepted (spread, POS): the matches are verified, the pose is not used
+        "verify_on_consensus": True,
         "seed": 0,
     },
     # aerial points observed in every aerial image that sees them (services.tracks: guided matching with
@@ -375,6 +382,16 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
+def prior_chi2(dxy: float, dz: float, drot: float, std: tuple[float, float, float], pc: dict) -> float:
+    """Squared normalized difference of a pose to its POS: horizontal (m), vertical (m) and rotation
+    (deg) over their standard deviations, each at least its floor (min_position_m etc.) / prior_sigmas."""
+    k = pc["prior_sigmas"]
+    sxy = max(std[0], pc["min_position_m"] / (k * math.sqrt(2.0)))
+    sz = max(std[1], pc["min_height_m"] / k)
+    satt = max(std[2], pc["min_rotation_deg"] / (k * math.sqrt(3.0)))
+    return float((dxy / sxy) ** 2 + (dz / sz) ** 2 + (drot / satt) ** 2)
+
+
 def estimate_ground_pose(
     kp: np.ndarray,
     X: np.ndarray,
@@ -438,6 +455,9 @@ def estimate_ground_pose(
         reasons.append(f"{int(inl.sum())} inliers (< {pc['min_inliers']})")
     if inl.mean() < pc["min_inlier_ratio"]:
         reasons.append(f"inlier ratio {inl.mean():.2f} (< {pc['min_inlier_ratio']})")
+    # enough correspondences agree on one camera: they verify the matches even where the pose itself is
+    # ill-determined (clustered or planar points) and fails the spread or POS checks below
+    res["consensus"] = not reasons
     if prior is not None:
         d = pose.center - prior.center
         dxy, dz = float(np.linalg.norm(d[:2])), float(abs(d[2]))
@@ -456,6 +476,10 @@ def estimate_ground_pose(
             reasons.append(f"{dz:.1f} m from the POS vertically (> {lim_z:.1f})")
         if drot > lim_rot:
             reasons.append(f"{drot:.1f} deg from the POS attitude (> {lim_rot:.1f})")
+        chi2 = prior_chi2(dxy, dz, drot, (sxy, sz, satt), pc)
+        res["to_pos"]["chi2"] = chi2
+        if pc.get("prior_chi2") and chi2 > pc["prior_chi2"]:
+            reasons.append(f"position and attitude jointly {chi2:.1f} (chi-square > {pc['prior_chi2']:.1f})")
     res["accepted"] = not reasons
     res["reason"] = "; ".join(reasons) if reasons else "ok"
     return res
@@ -675,7 +699,7 @@ def reduce_views(
             poses[g] = res
             for key in keys:
                 m = merged[key]
-                if res["accepted"]:
+                if res["accepted"] or (conf["pnp"]["verify_on_consensus"] and res.get("consensus")):
                     uv, z = pose.project(ground_camera.K, m["X"])
                     err = np.where(z > 0, np.linalg.norm(uv - keypoints[g][m["ig"]], axis=1), np.inf)
                     verified[key] = err <= conf["pnp"]["keep_px"]
@@ -913,7 +937,7 @@ def localize_direct(
         poses[g] = res
         for a, m, sc, x in items:
             keep = np.zeros(len(m), bool)
-            if res["accepted"]:
+            if res["accepted"] or (conf["pnp"]["verify_on_consensus"] and res.get("consensus")):
                 good = np.isfinite(x).all(1)
                 uv, z = pose.project(cams["ground"].K, np.where(good[:, None], x, 0.0))
                 err = np.linalg.norm(uv - kps[g][m[:, 1]], axis=1)

@@ -212,12 +212,21 @@ def test_pnp_verification_rejects_wrong_matches_and_localizes_the_ground_camera(
     assert r["accepted"], r["reason"]
     assert np.linalg.norm(np.asarray(r["center"]) - ground_pose.center) < 0.1
 
-    # a POS far from the truth (30 m): the pose is rejected and no match of that ground image is kept
+    # a POS far from the truth (30 m): the pose is rejected (not used downstream), but the matches that
+    # agree on one camera are still verified by it (verify_on_consensus), the wrong ones are not
     far = Pose.from_center(ground_pose.R.T, ground_pose.center + [30.0, 0, 0])
     pairs, _, poses, _ = transfer.reduce_views(
         [v], {A: aerial_cam}, {A: aerial_pose}, CAM, {G: far}, {G: (2.5, 4.0, 2.0)}
     )
-    assert not poses[G]["accepted"] and "POS" in poses[G]["reason"]
+    assert not poses[G]["accepted"] and "POS" in poses[G]["reason"] and poses[G]["consensus"]
+    p = pairs[(A, G)]
+    kept = set(p["matches"][p["inliers"], 1].tolist())
+    assert kept >= set(range(40)) and not kept & set(bad.tolist())
+    # without that, no match of a ground image without an accepted pose is kept
+    pairs, _, poses, _ = transfer.reduce_views(
+        [v], {A: aerial_cam}, {A: aerial_pose}, CAM, {G: far}, {G: (2.5, 4.0, 2.0)},
+        {"pnp": {"verify_on_consensus": False}},
+    )  # fmt: skip
     assert pairs[(A, G)]["inliers"].sum() == 0
 
     # the aerial check: a wrong aerial keypoint is rejected before the merge
@@ -237,3 +246,15 @@ def test_pnp_verification_rejects_wrong_matches_and_localizes_the_ground_camera(
     )
     assert stats["aerial_rejected"]["aerial_reprojection"] == 5
     assert not set(pairs[(A, G)]["matches"][:, 0].tolist()) & set(range(5))
+
+
+def test_the_pos_gate_is_joint():
+    """A pose that passes each POS limit alone but is off in several ways at once (the small preset's
+    G0003: 8.5 m, 1.6 m and 10.4 deg from a POS of 2.5 m / 4 m / 2 deg) is rejected; typical ones pass."""
+    pc = transfer.default_conf["pnp"]
+    std = (2.5, 4.0, 2.0)
+    assert transfer.prior_chi2(8.5, 1.6, 10.4, std, pc) > pc["prior_chi2"]
+    for dxy, dz, drot in ((3.7, 9.1, 2.1), (5.2, 3.5, 6.4), (2.3, 2.8, 1.9)):
+        assert transfer.prior_chi2(dxy, dz, drot, std, pc) < pc["prior_chi2"]
+    # the floors: a POS claiming 1 cm and 0.01 deg does not make every pose fail
+    assert transfer.prior_chi2(2.0, 2.0, 3.0, (0.01, 0.01, 0.01), pc) < pc["prior_chi2"]
