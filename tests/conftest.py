@@ -1,5 +1,13 @@
 """Shared fixtures."""
 
+import os
+
+# One thread for pycolmap, torch and numba in every test: pycolmap's multi-threaded bundle adjustment
+# differs in the last bits from run to run, and on the tiny scenes of the tests that can change which
+# images register, which views are planned and whether any match is transferred. Tests that need
+# another value set MIDVIEW_NUM_THREADS themselves.
+os.environ.setdefault("MIDVIEW_NUM_THREADS", "1")
+
 from servers import postgres_server, postgres_url, redis_url, s3_server  # noqa: F401
 
 # ---------------------------------------------------------------------------------------------------------
