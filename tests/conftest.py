@@ -20,6 +20,15 @@ import pytest  # noqa: E402
 from api.config import ApiSettings  # noqa: E402
 
 
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    """The synthetic `tiny` preset (seed 0), rendered once per session; tests only read it (a test
+    module may define its own `tiny_scene` with another configuration)."""
+    from services.synth import confs, main
+
+    return main(confs["tiny"], tmp_path_factory.mktemp("tiny") / "scene", seed=0)
+
+
 class RecordingDispatcher:
     """Records submit/revoke instead of queueing work. The API layer is tested alone: tests inject this
     with `app.dependency_overrides[api.deps.get_dispatcher]`; the Celery and embedded dispatchers are

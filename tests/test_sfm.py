@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -34,7 +33,6 @@ from services.sfm.georef import condition, estimate
 from services.sfm.report import compare_with_truth, unregistered_reason
 from shared.images import ImageError
 
-HAS_SYNTH = importlib.util.find_spec("services.synth") is not None
 BRIGHTON = Path(__file__).resolve().parents[2] / "shared" / "data" / "brighton_beach" / "images"
 
 
@@ -233,16 +231,6 @@ def test_bad_images_and_pos_are_named(tmp_path):
 
 
 # -- end to end --------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory) -> Path:
-    if not HAS_SYNTH:
-        pytest.skip("services.synth is not available")
-    from services.synth import confs as synth_confs
-    from services.synth import main as synth_main
-
-    return synth_main(synth_confs["tiny"], tmp_path_factory.mktemp("tiny") / "scene", seed=0)
-
-
 def test_sfm_on_the_tiny_synthetic_scene(tiny_scene, tmp_path):
     """The tiny preset: two stations of one nadir and four outward obliques (-45 deg) each. The two nadir
     images and the obliques facing each other's station register; the other obliques share too little

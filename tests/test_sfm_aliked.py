@@ -3,7 +3,6 @@ georeference status, and ALIKED + LightGlue on the tiny synthetic scene."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import numpy as np
@@ -18,7 +17,6 @@ from services.sfm import GeorefError, confs, main, pairing, verify
 from services.sfm.aerial import unrotate_keypoints
 from services.sfm.georef import Georef, status
 
-HAS_SYNTH = importlib.util.find_spec("services.synth") is not None
 FRAME = LocalFrame(55.70, 13.19, 100.0)
 
 
@@ -203,16 +201,6 @@ def test_the_command_warns_of_a_suspect_georeference(tmp_path, monkeypatch):
 
 
 # -- end to end --------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    if not HAS_SYNTH:
-        pytest.skip("services.synth is not available")
-    from services.synth import confs as synth_confs
-    from services.synth import main as synth_main
-
-    return synth_main(synth_confs["tiny"], tmp_path_factory.mktemp("tiny") / "scene", seed=0)
-
-
 def test_a_failed_georeference_exits_non_zero_and_keeps_the_model(tiny_scene, tmp_path):
     """The two nadir images' POS positions swapped: no similarity fits 3 of the cameras."""
     recs = read_pos_csv(tiny_scene / "pos.csv")

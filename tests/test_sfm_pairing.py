@@ -3,7 +3,6 @@ the pairing modes, and a footprint-paired reconstruction of the tiny synthetic s
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import numpy as np
@@ -16,7 +15,6 @@ from services.colmap_model import Camera
 from services.pos import LocalFrame, PosRecord, ypr_to_matrix
 from services.sfm import pairing
 
-HAS_SYNTH = importlib.util.find_spec("services.synth") is not None
 CAM = Camera("PINHOLE", 200, 100, [100.0, 100.0, 100.0, 50.0])  # 90 x 53 degrees
 FRAME = LocalFrame(55.70, 13.19, 100.0)
 
@@ -140,16 +138,6 @@ def test_pairing_modes_and_terrain_height():
 
 
 # -- end to end --------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    if not HAS_SYNTH:
-        pytest.skip("services.synth is not available")
-    from services.synth import confs as synth_confs
-    from services.synth import main as synth_main
-
-    return synth_main(synth_confs["tiny"], tmp_path_factory.mktemp("tiny") / "scene", seed=0)
-
-
 def test_footprint_pairs_on_the_tiny_scene(tiny_scene, tmp_path):
     """Two stations of a nadir and four obliques, 40 m up: footprint pairs leave out the obliques that
     look away from each other, and the nadir images and the obliques facing them still register."""
