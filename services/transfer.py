@@ -456,8 +456,8 @@ def estimate_ground_pose(
     if inl.mean() < pc["min_inlier_ratio"]:
         reasons.append(f"inlier ratio {inl.mean():.2f} (< {pc['min_inlier_ratio']})")
     # enough correspondences agree on one camera: they verify the matches even where the pose itself is
-    # ill-determined (clustered or planar points) and fails the spread or POS checks below
-    res["consensus"] = not reasons
+    # ill-determined (clustered or planar points) and fails the spread check above or the POS checks below
+    res["consensus"] = bool(inl.sum() >= pc["min_inliers"] and inl.mean() >= pc["min_inlier_ratio"])
     if prior is not None:
         d = pose.center - prior.center
         dxy, dz = float(np.linalg.norm(d[:2])), float(abs(d[2]))

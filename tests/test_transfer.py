@@ -258,3 +258,17 @@ def test_the_pos_gate_is_joint():
         assert transfer.prior_chi2(dxy, dz, drot, std, pc) < pc["prior_chi2"]
     # the floors: a POS claiming 1 cm and 0.01 deg does not make every pose fail
     assert transfer.prior_chi2(2.0, 2.0, 3.0, (0.01, 0.01, 0.01), pc) < pc["prior_chi2"]
+
+
+def test_a_clustered_consensus_verifies_matches_but_gives_no_pose():
+    """Correspondences in a small patch of the image agree on one camera (consensus) but fix its pose
+    poorly: the pose is not accepted (spread), yet it verifies the matches."""
+    rng = np.random.default_rng(4)
+    pose = look_at(np.array([0.0, 0.0, 1.6]), np.array([0.0, 20.0, 3.0]))
+    kp = np.stack([rng.uniform(300, 340, 40), rng.uniform(220, 250, 40)], 1)  # 40 x 30 px of 640 x 480
+    X = pose.unproject(CAM.K, kp, rng.uniform(18.0, 22.0, 40))
+    r = transfer.estimate_ground_pose(kp, X, CAM, pose, (2.5, 4.0, 2.0), transfer.default_conf)
+    assert not r["accepted"] and "cover" in r["reason"]
+    assert r["consensus"] and r["num_inliers"] >= 38
+    few = transfer.estimate_ground_pose(kp[:8], X[:8], CAM, pose, (2.5, 4.0, 2.0), transfer.default_conf)
+    assert not few["accepted"] and not few.get("consensus")
