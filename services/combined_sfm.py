@@ -5,8 +5,10 @@ Database (out/database.db), a copy of the aerial SfM database with:
   the aerial model's tracks stay valid), then the matching features (services.features cache) the
   transferred matches refer to, at an offset;
 - the ground camera, the ground images with their matching features and their POS as pose priors;
-- ground-ground matches (POS neighbours, the matching features, F-RANSAC) and the transferred
-  aerial-ground matches (the reducer's verified matches), with two-view geometries.
+- ground-ground matches (POS neighbours, the matching features, an essential-matrix RANSAC whose
+  relative pose must agree with the POS: facades repeat, and a fundamental matrix alone verified pairs
+  that share nothing) and the transferred aerial-ground matches (the reducer's verified matches), with
+  two-view geometries.
 
 Input model (out/input): the aerial model rebuilt with the extended keypoints, the ground images whose
 PnP pose the reducer accepted (registered at that pose), and one 3D point per transferred track (the
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import shutil
 import sqlite3
 import time
@@ -41,6 +44,15 @@ default_conf: dict[str, Any] = {
         "max_distance_m": 40.0,  # ... within this distance ...
         "max_heading_deg": 100.0,  # ... whose viewing directions differ by less than this
         "min_inliers": 15,
+        # verification: an essential matrix (both cameras calibrated) whose relative pose agrees with
+        # the POS: rotation within prior_sigmas x the attitude noise (at least min_rotation_deg), the
+        # baseline's direction within the angle the position noise allows (unchecked when the noise
+        # is as large as the baseline)
+        "ransac_px": 3.0,
+        "prior_sigmas": 3.0,
+        "min_rotation_deg": 10.0,
+        "min_direction_deg": 15.0,
+        "seed": 0,
     },
     "seed_points": True,  # 3D points of the transferred tracks in the input model
     "seed_pnp_poses": True,  # ground images with an accepted PnP pose start registered ...
@@ -113,7 +125,12 @@ def _write_ground(db: pycolmap.Database, camera: Camera, names: list[str]) -> di
 
 
 def _write_pair(
-    db: pycolmap.Database, id0: int, id1: int, matches: np.ndarray, sizes: dict | None = None
+    db: pycolmap.Database,
+    id0: int,
+    id1: int,
+    matches: np.ndarray,
+    sizes: dict | None = None,
+    calibrated: bool = False,
 ) -> None:
     m = np.ascontiguousarray(np.asarray(matches, np.uint32).reshape(-1, 2))
     if db.exists_matches(id0, id1):
@@ -123,7 +140,10 @@ def _write_pair(
             sizes[i] = max(sizes.get(i, 0), len(m))
     db.write_matches(id0, id1, m)
     tvg = pycolmap.TwoViewGeometry(
-        config=pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED, inlier_matches=m
+        config=pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+        if calibrated
+        else pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED,
+        inlier_matches=m,
     )
     db.write_two_view_geometry(id0, id1, tvg)
 
@@ -145,6 +165,77 @@ def ground_pairs(poses: dict[str, Pose], names: list[str], conf: dict) -> list[t
             out.add(tuple(sorted((a, b))))
             k += 1
     return sorted(out)
+
+
+def verify_ground_pair(
+    kp0: np.ndarray,
+    kp1: np.ndarray,
+    matches: np.ndarray,
+    camera: Camera,
+    prior0: Pose,
+    prior1: Pose,
+    std0: tuple[float, float, float],
+    std1: tuple[float, float, float],
+    conf: dict,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """The inlier matches (k, 2) of two ground images and a record of the check: an essential-matrix
+    RANSAC (pycolmap, both images taken with `camera`), its relative pose compared with the POS poses
+    (cam_from_world; std = (horizontal m, vertical m, attitude deg)). A fundamental matrix alone
+    accepts repeated facade patterns between images that share nothing; the POS rejects them.
+    Returns no inliers when the check fails."""
+    from services.viewpoints import angle_deg
+
+    none = np.zeros((0, 2), np.int64)
+    m = np.asarray(matches, np.int64).reshape(-1, 2)
+    rec: dict[str, Any] = {"putative": len(m), "inliers": 0, "accepted": False}
+    if len(m) < max(int(conf["min_inliers"]), 5):
+        rec["reason"] = f"{len(m)} putative matches (< {conf['min_inliers']})"
+        return none, rec
+    o = pycolmap.TwoViewGeometryOptions()
+    o.min_num_inliers = int(conf["min_inliers"])
+    o.compute_relative_pose = True
+    o.ransac.max_error = float(conf["ransac_px"])
+    o.ransac.random_seed = int(conf["seed"])
+    o.ransac.min_inlier_ratio = 0.1
+    cam = camera.to_pycolmap(1)
+    p0 = np.ascontiguousarray(np.asarray(kp0, np.float64)[m[:, 0], :2])
+    p1 = np.ascontiguousarray(np.asarray(kp1, np.float64)[m[:, 1], :2])
+    idx = np.ascontiguousarray(np.stack([np.arange(len(m))] * 2, 1), np.uint32)
+    tvg = pycolmap.estimate_calibrated_two_view_geometry(cam, p0, cam, p1, idx, o)
+    inl = np.asarray(tvg.inlier_matches, np.int64).reshape(-1, 2)[:, 0]
+    rec["inliers"] = len(inl)
+    rec["config"] = pycolmap.TwoViewGeometryConfiguration(int(tvg.config)).name
+    if len(inl) < int(conf["min_inliers"]):
+        rec["reason"] = f"{len(inl)} inliers (< {conf['min_inliers']})"
+        return none, rec
+    rel = tvg.cam2_from_cam1
+    R_est = np.asarray(rel.rotation.matrix())
+    R_pos = prior1.R @ prior0.R.T
+    k = float(conf["prior_sigmas"])
+    drot = float(np.degrees(np.arccos(np.clip((np.trace(R_est @ R_pos.T) - 1) / 2, -1, 1))))
+    lim_rot = max(k * math.sqrt(3.0 * (std0[2] ** 2 + std1[2] ** 2)), float(conf["min_rotation_deg"]))
+    rec.update(rotation_deg=drot, rotation_limit_deg=lim_rot)
+    reasons = []
+    if drot > lim_rot:
+        reasons.append(f"relative rotation {drot:.1f} deg from the POS (> {lim_rot:.1f})")
+    t = np.asarray(rel.translation, float)
+    base = prior1.center - prior0.center
+    b = float(np.linalg.norm(base))
+    noise = k * math.sqrt(2.0 * (std0[0] ** 2 + std1[0] ** 2) + std0[1] ** 2 + std1[1] ** 2)
+    if np.linalg.norm(t) > 1e-9 and b > noise:
+        # cam2_from_cam1 t = R1->2 (C1 - C2) in camera-2 coordinates: the baseline C2 - C1 is -R2^T t
+        d_est = -prior1.R.T @ t
+        ddir = angle_deg(d_est, base)
+        lim_dir = math.degrees(math.asin(min(noise / b, 1.0))) + lim_rot
+        lim_dir = max(lim_dir, float(conf["min_direction_deg"]))
+        rec.update(direction_deg=ddir, direction_limit_deg=lim_dir)
+        if ddir > lim_dir:
+            reasons.append(f"baseline direction {ddir:.1f} deg from the POS (> {lim_dir:.1f})")
+    if reasons:
+        rec["reason"] = "; ".join(reasons)
+        return none, rec
+    rec.update(accepted=True, reason="ok")
+    return m[inl], rec
 
 
 # -- main ----------------------------------------------------------------------------------------
@@ -251,18 +342,31 @@ def main(
             # ground-ground
             gp = ground_pairs(priors, ground_names, conf["ground_pairs"])
             n_gg = 0
+            gg_records = {}
             for i, (g0, g1) in enumerate(gp):
-                pm = direct.match_pair(match_conf, g0, g1, g_feats[g0], g_feats[g1])
-                inl = pm.matches[pm.inliers]
-                if len(inl) >= conf["ground_pairs"]["min_inliers"]:
-                    _write_pair(db, ids[g0], ids[g1], inl, pair_sizes)
+                mm, _ = direct.match_features(g_feats[g0], g_feats[g1], match_conf["matcher"])
+                inl, rec_gg = verify_ground_pair(
+                    g_feats[g0]["keypoints"],
+                    g_feats[g1]["keypoints"],
+                    mm,
+                    cams["ground"],
+                    priors[g0],
+                    priors[g1],
+                    prior_std[g0],
+                    prior_std[g1],
+                    conf["ground_pairs"],
+                )
+                gg_records[f"{g0} {g1}"] = rec_gg
+                if len(inl):
+                    _write_pair(db, ids[g0], ids[g1], inl, pair_sizes, calibrated=True)
                     n_gg += 1
                 prog(0.6 * (i + 1) / max(len(gp), 1), f"ground pair {i + 1}/{len(gp)}")
         finally:
             db.close()
         timings["database"] = time.perf_counter() - t0
         logger.info(
-            "database: %d aerial-ground matches in %d pairs, %d/%d ground-ground pairs verified",
+            "database: %d aerial-ground matches in %d pairs, %d/%d ground-ground pairs verified"
+            " (essential matrix agreeing with the POS)",
             n_ag,
             len(ag),
             n_gg,
@@ -340,6 +444,7 @@ def main(
         shutil.copy(aerial_dir / "georef.json", out_dir / "georef.json")
 
     report = build_report(rec, ids, priors, pnp, seed, geo_summary, timings, t_all)
+    report["ground_pairs"] = gg_records
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     logger.info(
         "combined model: NRI aerial %s, ground %s; N3P %d; reprojection error %.2f px -> %s",

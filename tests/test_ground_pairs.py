@@ -1,0 +1,89 @@
+"""Ground-ground pair verification of the combined reconstruction: an essential matrix whose relative
+pose must agree with the POS (services.combined_sfm.verify_ground_pair)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.colmap_model import Camera, Pose
+from services.combined_sfm import default_conf, verify_ground_pair
+from services.viewpoints import look_at
+
+CAM = Camera(model="PINHOLE", width=1024, height=768, params=[750.0, 750.0, 512.0, 384.0])
+STD = (2.5, 4.0, 2.0)
+CONF = default_conf["ground_pairs"]
+
+
+def rot_z(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def street():
+    """Two ground cameras 15 m apart along a street, both looking at a facade 20 m away (points with
+    depth variation: balconies, bays), and their exact projections."""
+    rng = np.random.default_rng(0)
+    X = np.stack([rng.uniform(-25, 40, 300), 20.0 + rng.uniform(0, 4, 300), rng.uniform(0, 15, 300)], 1)
+    pose0 = look_at(np.array([0.0, 0.0, 1.8]), np.array([2.0, 20.0, 5.0]))
+    pose1 = look_at(np.array([15.0, 0.0, 1.7]), np.array([14.0, 20.0, 5.0]))
+    uv0, z0 = pose0.project(CAM.K, X)
+    uv1, z1 = pose1.project(CAM.K, X)
+    inside = (z0 > 0) & (z1 > 0)
+    for uv in (uv0, uv1):
+        inside &= (uv[:, 0] >= 0) & (uv[:, 0] < CAM.width) & (uv[:, 1] >= 0) & (uv[:, 1] < CAM.height)
+    uv0 = uv0[inside] + rng.normal(0, 0.5, uv0[inside].shape)
+    uv1 = uv1[inside] + rng.normal(0, 0.5, uv1[inside].shape)
+    return pose0, pose1, uv0, uv1
+
+
+def _matches(n: int, n_wrong: int, rng) -> np.ndarray:
+    m = np.stack([np.arange(n), np.arange(n)], 1)
+    wrong = rng.choice(n, n_wrong, replace=False)
+    m[wrong, 1] = rng.permutation(m[wrong, 1])
+    return m
+
+
+def test_true_pair_agreeing_with_the_pos_is_kept(street):
+    pose0, pose1, uv0, uv1 = street
+    rng = np.random.default_rng(1)
+    m = _matches(len(uv0), len(uv0) // 5, rng)
+    # POS: positions off by a metre or two, attitude by a degree or two
+    std = (1.0, 1.5, 2.0)  # small enough for the 15 m baseline's direction to be checked too
+    p0 = Pose.from_center(pose0.R.T @ rot_z(1.5), pose0.center + [1.0, -0.8, 1.5])
+    p1 = Pose.from_center(pose1.R.T @ rot_z(-1.0), pose1.center + [-0.5, 1.0, -1.0])
+    inl, rec = verify_ground_pair(uv0, uv1, m, CAM, p0, p1, std, std, CONF)
+    assert rec["accepted"], rec
+    assert rec["rotation_deg"] < 5.0
+    assert "direction_deg" in rec and rec["direction_deg"] < 15.0
+    assert len(inl) >= 0.7 * len(uv0)
+    assert (inl[:, 0] == inl[:, 1]).mean() > 0.97  # the planted wrong matches are out
+
+
+def test_pair_contradicting_the_pos_rotation_is_rejected(street):
+    pose0, pose1, uv0, uv1 = street
+    m = _matches(len(uv0), 0, np.random.default_rng(2))
+    # the POS says the second camera looks 40 degrees elsewhere: the matches cannot be between them
+    p1 = Pose.from_center(pose1.R.T @ rot_z(40.0), pose1.center)
+    inl, rec = verify_ground_pair(uv0, uv1, m, CAM, pose0, p1, STD, STD, CONF)
+    assert not rec["accepted"] and len(inl) == 0
+    assert "relative rotation" in rec["reason"]
+
+
+def test_pair_contradicting_the_pos_baseline_is_rejected(street):
+    pose0, pose1, uv0, uv1 = street
+    m = _matches(len(uv0), 0, np.random.default_rng(3))
+    # same attitude, but the POS puts the second camera 30 m the other way along the street
+    p1 = Pose.from_center(pose1.R.T, pose0.center - [30.0, 0.0, 0.0])
+    inl, rec = verify_ground_pair(uv0, uv1, m, CAM, pose0, p1, STD, STD, CONF)
+    assert not rec["accepted"] and len(inl) == 0
+    assert "baseline direction" in rec["reason"]
+
+
+def test_unrelated_matches_are_rejected(street):
+    pose0, pose1, uv0, uv1 = street
+    rng = np.random.default_rng(4)
+    m = np.stack([np.arange(len(uv0)), rng.permutation(len(uv0))], 1)  # no true correspondence
+    inl, rec = verify_ground_pair(uv0, uv1, m, CAM, pose0, pose1, STD, STD, CONF)
+    assert not rec["accepted"] and len(inl) == 0
