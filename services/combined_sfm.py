@@ -57,6 +57,11 @@ default_conf: dict[str, Any] = {
     "seed_points": True,  # 3D points of the transferred tracks in the input model
     "seed_pnp_poses": True,  # ground images with an accepted PnP pose start registered ...
     "min_seed_matches": 15,  # ... when one of their pairs has this many matches (and min_num_matches)
+    # ground images with an accepted PnP pose that the mapper could not keep (their 2D-3D support comes
+    # from many aerial images, or from the rendered depth, with no pair of min_num_matches) are added
+    # to the combined model at that pose, observing the model's points their transferred matches reach
+    "add_pnp_images": True,
+    "add_max_px": 4.0,  # such an observation must reproject within this (ground pixels)
     "mapping": {
         "min_num_matches": 15,  # pairs with fewer matches are ignored by the mapper
         "abs_pose_min_num_inliers": 15,
@@ -424,6 +429,14 @@ def main(
         else:
             logger.warning("the mapper returned no model: keeping the seeded input model")
             rec = seed
+        added = add_pnp_images(rec, db_path, ids, offsets, ag, pnp, conf) if conf["add_pnp_images"] else []
+        if added:
+            logger.info(
+                "%d ground images localized by the reducer's PnP but without pairs strong enough for the"
+                " mapper added at their PnP pose: %s",
+                len(added),
+                ", ".join(added),
+            )
 
     with stage("combined:georef", logger):
         frame = read_georef_frame(aerial_dir / "georef.json")
@@ -443,7 +456,7 @@ def main(
         rec.write(str(sparse))
         shutil.copy(aerial_dir / "georef.json", out_dir / "georef.json")
 
-    report = build_report(rec, ids, priors, pnp, seed, geo_summary, timings, t_all)
+    report = build_report(rec, ids, priors, pnp, seed, geo_summary, timings, t_all, added)
     report["ground_pairs"] = gg_records
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     logger.info(
@@ -530,6 +543,92 @@ def build_input_model(
     return rec
 
 
+def add_pnp_images(
+    rec: pycolmap.Reconstruction,
+    db_path: Path,
+    ids: dict[str, int],
+    offsets: dict[str, int],
+    ag: list[tuple[str, str, np.ndarray]],
+    pnp: dict[str, dict],
+    conf: dict,
+) -> list[str]:
+    """Add to `rec` the ground images whose PnP pose the reducer accepted but the mapper did not
+    register, at that pose; each observes the model's 3D points that its transferred matches reach
+    (the aerial keypoint's point, reprojecting within `add_max_px`). Returns the names added."""
+    todo = [g for g, r in sorted(pnp.items()) if r.get("accepted") and g in ids]
+    registered = {im.name for im in rec.images.values() if im.has_pose}
+    todo = [g for g in todo if g not in registered]
+    if not todo:
+        return []
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        db_images = {n: db.read_image(ids[n]) for n in todo}
+        kps = {n: db.read_keypoints(ids[n])[:, :2].astype(np.float64) for n in todo}
+        cams = {c.camera_id: c for c in db.read_all_cameras()}
+    finally:
+        db.close()
+    aerial_p3d: dict[str, dict[int, int]] = {}  # aerial name -> keypoint -> point3D id
+    for im in rec.images.values():
+        if im.name in offsets and im.has_pose:
+            aerial_p3d[im.name] = {k: p.point3D_id for k, p in enumerate(im.points2D) if p.has_point3D()}
+    added = []
+    for g in todo:
+        dbim = db_images[g]
+        if dbim.camera_id not in rec.cameras:
+            rec.add_camera_with_trivial_rig(cams[dbim.camera_id])
+        r = pnp[g]
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(r["R"], float)), np.asarray(r["t"], float))
+        im = pycolmap.Image(name=g, keypoints=kps[g], camera_id=dbim.camera_id, image_id=ids[g])
+        rec.add_image_with_trivial_frame(im, pose)
+        added.append(g)
+    # observations: of the aerial keypoint's point where it has one, else of a new two-view point
+    all_kps: dict[int, np.ndarray] = {ids[g]: kps[g] for g in added}
+    used: set[tuple[int, int]] = set()  # (ground image id, point3D id or -keypoint - 1)
+    new_tracks: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for a, g, m in ag:
+        if ids.get(g) not in all_kps or a not in aerial_p3d:
+            continue
+        gid = ids[g]
+        P = _projection(rec.images[gid])
+        for ia, ig in m:
+            akp = int(ia) + offsets[a]
+            if (gid, -int(ig) - 1) in used:
+                continue
+            pid = aerial_p3d[a].get(akp)
+            if pid is None:
+                new_tracks.setdefault((ids[a], akp), []).append((gid, int(ig)))
+                continue
+            if (gid, pid) in used:
+                continue
+            x = P @ np.append(rec.points3D[pid].xyz, 1.0)
+            if x[2] <= 0 or np.linalg.norm(x[:2] / x[2] - kps[g][ig]) > conf["add_max_px"]:
+                continue
+            rec.add_observation(pid, pycolmap.TrackElement(gid, int(ig)))
+            used |= {(gid, pid), (gid, -int(ig) - 1)}
+    for (aid, akp), gobs in sorted(new_tracks.items()):
+        if aid not in all_kps:
+            all_kps[aid] = np.array([p.xy for p in rec.images[aid].points2D], np.float64)
+        obs = [(aid, akp)]
+        for gid, ig in gobs:
+            if (gid, -ig - 1) not in used and all(gid != i for i, _ in obs):
+                obs.append((gid, ig))
+        if len(obs) < 2:
+            continue
+        X = _triangulate(rec, obs, all_kps, conf["add_max_px"])
+        if X is None:
+            continue
+        rec.add_point3D(
+            X, pycolmap.Track([pycolmap.TrackElement(i, k) for i, k in obs]), np.full(3, 128, np.uint8)
+        )
+        used |= {(gid, -ig - 1) for gid, ig in obs[1:]}
+    return added
+
+
+def _projection(image: pycolmap.Image) -> np.ndarray:
+    """The 3x4 projection matrix K [R | t] of a posed image (pinhole part of its camera)."""
+    return np.asarray(image.camera.calibration_matrix()) @ np.asarray(image.cam_from_world().matrix())
+
+
 def _seed_tracks(
     rec: pycolmap.Reconstruction,
     ids: dict[str, int],
@@ -575,15 +674,17 @@ def _seed_tracks(
 
 
 def _triangulate(
-    rec: pycolmap.Reconstruction, obs: list[tuple[int, int]], kps: dict[int, np.ndarray]
+    rec: pycolmap.Reconstruction,
+    obs: list[tuple[int, int]],
+    kps: dict[int, np.ndarray],
+    max_px: float = 8.0,
 ) -> np.ndarray | None:
-    """Linear (DLT) triangulation; None when it lies behind a camera or reprojects badly (> 8 px)."""
+    """Linear (DLT) triangulation; None when it lies behind a camera or reprojects badly (> max_px)."""
     A = []
     Ps = []
     for iid, k in obs:
         img = rec.images[iid]
-        K = np.asarray(img.camera.calibration_matrix())
-        P = K @ np.asarray(img.cam_from_world().matrix())
+        P = _projection(img)
         x, y = kps[iid][k]
         A.append(x * P[2] - P[0])
         A.append(y * P[2] - P[1])
@@ -595,7 +696,7 @@ def _triangulate(
     X = Xh[:3] / Xh[3]
     for P, uv in Ps:
         p = P @ np.append(X, 1.0)
-        if p[2] <= 0 or np.linalg.norm(p[:2] / p[2] - uv) > 8.0:
+        if p[2] <= 0 or np.linalg.norm(p[:2] / p[2] - uv) > max_px:
             return None
     return X
 
@@ -609,6 +710,7 @@ def build_report(
     georef: dict | None,
     timings: dict,
     t_all: float,
+    added: list[str] | None = None,
 ) -> dict:
     reg = {im.name: im for im in rec.images.values() if im.has_pose}
     sets = {
@@ -620,6 +722,8 @@ def build_report(
     for g in sets["ground"]:
         d: dict[str, Any] = {"registered": g in reg}
         if g in reg:
+            d["registered_by"] = "pnp" if g in (added or []) else "mapper"
+            d["observations"] = int(reg[g].num_points3D)
             c = np.asarray(reg[g].projection_center())
             d["center"] = c.tolist()
             if g in priors:
@@ -640,7 +744,10 @@ def build_report(
         "num_points3D": int(rec.num_points3D()),
         "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
         "mean_track_length": float(rec.compute_mean_track_length()),
-        "seeded_ground_images": sum(im.name.startswith("ground/") for im in seed.images.values()),
+        "added_pnp_ground_images": sorted(added or []),
+        "seeded_ground_images": sum(
+            im.name.startswith("ground/") and im.has_pose for im in seed.images.values()
+        ),
         "georef": georef,
         "ground": ground,
         "timings_s": {

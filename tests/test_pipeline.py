@@ -97,6 +97,26 @@ def test_matches_were_produced(tiny_job):
     assert rep["num_images"]["ground"] == 4
 
 
+def test_every_localized_ground_image_is_in_the_combined_model(tiny_job):
+    """A ground image the reducer localized (accepted PnP pose) is registered in the combined model: by
+    the mapper, or added at its PnP pose when none of its pairs is strong enough for the mapper."""
+    import numpy as np
+    import pycolmap
+
+    job, _, _ = tiny_job
+    poses = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
+    rep = json.loads((job.dir("combined") / "report.json").read_text())
+    rec = pycolmap.Reconstruction(str(job.dir("combined") / "sparse"))
+    reg = {im.name: im for im in rec.images.values() if im.has_pose}
+    for g, r in poses.items():
+        if r["accepted"]:
+            assert g in reg and rep["ground"][g]["registered"], g
+    for g in rep["added_pnp_ground_images"]:
+        assert rep["ground"][g]["registered_by"] == "pnp"
+        assert np.allclose(reg[g].projection_center(), poses[g]["center"], atol=1e-6)
+    assert rep["num_registered"]["ground"] == sum(n.startswith("ground/") for n in reg)
+
+
 def test_rerun_skips_every_stage(tiny_job):
     job, _, _ = tiny_job
     again = pipeline.run(pipeline.Job.load(job.root))
