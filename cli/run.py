@@ -19,7 +19,7 @@ from pathlib import Path
 
 import typer
 
-from shared.job_options import STAGES
+from shared.job_options import DEFAULT_STAGES, STAGES
 
 logger = logging.getLogger("midview.cli.run")
 
@@ -111,7 +111,12 @@ def run(
     splat_max_width: int = typer.Option(400, help="3DGS training image width"),
     max_keypoints: int = typer.Option(1024, help="keypoints per image for matching"),
     seed: int = typer.Option(0, help="random seed"),
-    stages: str | None = typer.Option(None, help="comma-separated stages to run (default: all)"),
+    stages: str | None = typer.Option(
+        None, help=f"comma-separated stages to run (default: {','.join(DEFAULT_STAGES)})"
+    ),
+    splat_all: bool = typer.Option(
+        False, "--splat-all", help="also train a 3DGS on all images of the combined model (stage splat_all)"
+    ),
     from_stage: str | None = typer.Option(None, "--from", help="rerun from this stage on"),
     force: bool = typer.Option(False, help="rerun the --from stage (or every stage) even if up to date"),
     renderer: str = typer.Option("splat", help="splat (3DGS) or gt (ground truth of --scene: benchmarks)"),
@@ -125,7 +130,9 @@ def run(
 
     from services import pipeline
 
-    stage_list = [s.strip() for s in stages.split(",")] if stages else list(STAGES)
+    stage_list = [s.strip() for s in stages.split(",")] if stages else list(DEFAULT_STAGES)
+    if splat_all and "splat_all" not in stage_list:
+        stage_list.append("splat_all")
     bad = [s for s in stage_list + ([from_stage] if from_stage else []) if s not in STAGES]
     if bad:
         _fail(f"unknown stage(s) {bad}: stages are {', '.join(STAGES)}")
@@ -168,6 +175,14 @@ def run(
         typer.echo(
             f"combined model: NRI aerial {rep['NRI']['aerial']}, ground {rep['NRI']['ground']}, "
             f"N3P {rep['num_points3D']} -> {job.dir('combined') / 'sparse'}"
+        )
+    if "splat_all" in results:
+        m = json.loads((job.dir("splat_all") / "metrics.json").read_text())
+        typer.echo(
+            f"3DGS on all images: {m['num_views']['aerial']} aerial + "
+            f"{m['num_views']['ground']} ground views, "
+            f"{m['num_gaussians']} Gaussians, held-out PSNR {m['test']['psnr']:.2f} dB "
+            f"-> {job.dir('splat_all') / 'point_cloud.ply'}"
         )
 
 

@@ -15,6 +15,7 @@ JOB/features/            match_views:  the aerial and ground images' matching fe
 JOB/matches/NAME.h5      match_views:  one file per view
 JOB/transfer/            reduce:       matches.h5, database.db, ground_poses.json, report.json
 JOB/combined/            combined_sfm: sparse/, database.db, report.json
+JOB/splat_all/           splat_all:    the 3DGS of all registered images (optional stage), like splat/
 JOB/stages/STAGE.json    done markers: input fingerprint, outputs, seconds, summary
 ```
 
@@ -41,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from shared.job_options import STAGE_QUEUES, STAGES, JobOptions
+from shared.job_options import OPTIONAL_STAGES, STAGE_QUEUES, STAGES, JobOptions
 
 logger = logging.getLogger("midview.pipeline")
 
@@ -393,14 +394,17 @@ def splat_inputs_digest(sparse: Path, names: list[str], image_dir: Path) -> str:
     return h.hexdigest()
 
 
-def train_splat(conf: dict, sparse: Path, image_dir: Path, out: Path, backend: str, report) -> dict:
-    """services.splat training in chunks (checkpoint at each), so that progress can be reported and a
-    killed run resumes from its last chunk."""
+def train_splat(
+    conf: dict, sparse: Path, image_dir: Path, out: Path, backend: str, report, prefix: str = "aerial/"
+) -> dict:
+    """services.splat training on the registered images of `sparse` named `prefix`* in chunks
+    (checkpoint at each), so that progress can be reported and a killed run resumes from its last
+    chunk."""
     from services.splat import Trainer, load_scene
     from services.splat.train import write_views
 
     out.mkdir(parents=True, exist_ok=True)
-    data = load_scene(sparse, image_dir, conf["max_width"], "aerial/", conf["test_every"])
+    data = load_scene(sparse, image_dir, conf["max_width"], prefix, conf["test_every"])
     trainer = Trainer(conf, data, out, backend)
     conf_file, inputs_file = out / "conf.json", out / "inputs.sha256"
     inputs = splat_inputs_digest(sparse, [v.name for v in data.views], image_dir)
@@ -432,8 +436,25 @@ def train_splat(conf: dict, sparse: Path, image_dir: Path, out: Path, backend: s
         "seconds": {"train": train_s},
         "test": {k: test[k] for k in ("psnr", "ssim", "n_views") if k in test},
     }
+    metrics["num_views"] = {
+        s: sum(v.name.startswith(f"{s}/") for v in data.views) for s in ("aerial", "ground")
+    }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     return {"num_gaussians": metrics["num_gaussians"], "test_psnr": test.get("psnr")}
+
+
+def _splat_all(job: Job, report) -> dict:
+    """The 3DGS on all registered images of the combined model (aerial and ground), as the paper's last
+    step: the same trainer and conf as train_splat, whatever the renderer of the views."""
+    return train_splat(
+        job.splat_conf(),
+        job.dir("combined") / "sparse",
+        job.image_dir,
+        job.dir("splat_all"),
+        job.settings["splat_backend"],
+        report,
+        prefix="",
+    )
 
 
 def _plan_views(job: Job, report) -> dict:
@@ -662,6 +683,13 @@ REGISTRY: dict[str, StageDef] = {
         ],
         lambda j: [j.dir("combined") / "sparse", j.dir("combined") / "report.json"],
     ),
+    "splat_all": StageDef(
+        "splat_all",
+        _splat_all,
+        lambda j: {"splat": j.splat_conf(), "backend": j.settings["splat_backend"]},
+        lambda j: [j.dir("combined") / "sparse", _images(j, "aerial"), _images(j, "ground")],
+        lambda j: [j.dir("splat_all") / "point_cloud.ply", j.dir("splat_all") / "metrics.json"],
+    ),
 }
 assert tuple(REGISTRY) == STAGES, "the registry must follow shared.job_options.STAGES"
 
@@ -740,10 +768,13 @@ def run(
 
 
 def status(job: Job | str | Path) -> dict[str, str]:
-    """{stage: "done" | "stale" | "pending"} of a job folder."""
+    """{stage: "done" | "stale" | "pending"} of a job folder (optional stages only when selected or
+    run)."""
     job = job if isinstance(job, Job) else Job.load(job)
     out = {}
     for s in STAGES:
+        if s in OPTIONAL_STAGES and s not in job.options.stages and read_marker(job, s) is None:
+            continue
         if read_marker(job, s) is None:
             out[s] = "pending"
         else:

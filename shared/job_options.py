@@ -11,9 +11,19 @@ from typing import Any, Literal, get_args
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 Stage = Literal[
-    "aerial_sfm", "train_splat", "plan_views", "render_views", "match_views", "reduce", "combined_sfm"
+    "aerial_sfm",
+    "train_splat",
+    "plan_views",
+    "render_views",
+    "match_views",
+    "reduce",
+    "combined_sfm",
+    "splat_all",
 ]
 STAGES: tuple[str, ...] = get_args(Stage)  # in pipeline order
+# stages a job runs only when asked (in `stages`): the 3DGS on all images of the combined model
+OPTIONAL_STAGES: frozenset[str] = frozenset({"splat_all"})
+DEFAULT_STAGES: tuple[str, ...] = tuple(s for s in STAGES if s not in OPTIONAL_STAGES)
 
 # the Celery queue each stage runs on: gpu (SfM, 3DGS, rendering), cpu (per-view matching), reduce
 STAGE_QUEUES: dict[str, str] = {
@@ -24,10 +34,13 @@ STAGE_QUEUES: dict[str, str] = {
     "match_views": "cpu",  # fanned out: one task per rendered view
     "reduce": "reduce",
     "combined_sfm": "reduce",
+    "splat_all": "gpu",
 }
 
 # stages that need ground images (everything after the aerial-only part)
-GROUND_STAGES = frozenset({"plan_views", "render_views", "match_views", "reduce", "combined_sfm"})
+GROUND_STAGES = frozenset(
+    {"plan_views", "render_views", "match_views", "reduce", "combined_sfm", "splat_all"}
+)
 
 
 class JobOptions(BaseModel):
@@ -36,9 +49,10 @@ class JobOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     stages: list[Stage] = Field(
-        default_factory=lambda: list(STAGES),
+        default_factory=lambda: list(DEFAULT_STAGES),
         min_length=1,
-        description="Pipeline stages to run (kept in pipeline order); default: all of them",
+        description="Pipeline stages to run (kept in pipeline order); default: all but splat_all (a 3DGS"
+        " on all images of the combined model, aerial and ground: add it to train one)",
     )
     sfm_features: Literal["sift", "aliked"] = Field(
         "sift", description="Local features of the aerial structure-from-motion"

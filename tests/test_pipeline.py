@@ -13,7 +13,7 @@ import json
 import pytest
 
 from services import pipeline
-from shared.job_options import STAGES
+from shared.job_options import DEFAULT_STAGES as STAGES
 from shared.matchfile import MatchFile
 
 
@@ -44,6 +44,8 @@ def tiny_job(tiny_scene, tmp_path_factory):
             "views_per_ground_image": 2,
             "matcher": "sift",
             "max_keypoints": 1024,
+            "splat_steps": 100,  # the optional splat_all stage (test_splat_on_all_images)
+            "splat_max_width": 160,
         },
         settings={
             "renderer": "gt",
@@ -149,3 +151,23 @@ def test_a_changed_conf_reruns_that_stage_and_the_ones_after(tiny_job, monkeypat
     res = pipeline.run(job2, stages=["match_views", "reduce", "combined_sfm"])
     assert res["match_views"]["skipped"] and not res["reduce"]["skipped"]
     assert calls == ["combined"]  # its input (the reducer's output) changed
+
+
+def test_splat_on_all_images(tiny_job):
+    """The optional last stage: a 3DGS on every registered image of the combined model, aerial and
+    ground, exported as PLY, with held-out metrics; not run unless selected."""
+    import math
+
+    from services.splat.ply import load_ply
+
+    job, results, _ = tiny_job
+    assert "splat_all" not in results and "splat_all" not in pipeline.status(job)
+    res = pipeline.run(job, stages=["splat_all"])
+    assert not res["splat_all"]["skipped"]
+    rep = json.loads((job.dir("combined") / "report.json").read_text())
+    m = json.loads((job.dir("splat_all") / "metrics.json").read_text())
+    assert m["num_views"] == rep["num_registered"]  # every registered image, aerial and ground
+    assert m["steps"] == 100 and math.isfinite(m["test"]["psnr"]) and m["test"]["psnr"] > 10.0
+    splats = load_ply(job.dir("splat_all") / "point_cloud.ply")
+    assert len(splats["means"]) == m["num_gaussians"] > 0
+    assert pipeline.status(job)["splat_all"] == "done"

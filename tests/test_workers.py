@@ -289,12 +289,13 @@ def test_canvas_of_a_job():
         ("run_stage", ["J", "train_splat"], "gpu", True),
         ("run_stage", ["J", "plan_views"], "gpu", True),
         ("run_stage", ["J", "render_views"], "gpu", True),
-        ("fan_out_views", ["J", ["reduce", "combined_sfm"]], "cpu", True),
+        ("fan_out_views", ["J", ["reduce", "combined_sfm", "splat_all"]], "cpu", True),
     ]
-    c = build_canvas(app, "J", ["reduce", "combined_sfm"])
+    c = build_canvas(app, "J", ["reduce", "combined_sfm", "splat_all"])
     assert [_sig_view(t) for t in c.tasks] == [
         ("run_stage", ["J", "reduce"], "reduce", True),
         ("run_stage", ["J", "combined_sfm"], "reduce", True),
+        ("run_stage", ["J", "splat_all"], "gpu", True),  # the 3DGS of all images: back to a GPU worker
         ("finalize", ["J"], "reduce", True),
     ]
     c = build_canvas(app, "J", ["match_views"])

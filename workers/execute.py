@@ -58,6 +58,7 @@ STAGE_DIRS: dict[str, list[str]] = {
     "match_views": ["matches", "features"],
     "reduce": ["transfer"],
     "combined_sfm": ["combined"],
+    "splat_all": ["splat_all"],
 }
 # files a stage writes outside its folder (pushed, never mirrored)
 STAGE_EXTRA: dict[str, list[str]] = {
@@ -84,6 +85,7 @@ ARTIFACTS: dict[str, list[tuple[str, str]]] = {
         ("transfer/database.db", "colmap_database"),
     ],
     "combined_sfm": [("combined/report.json", "report"), ("combined/sparse/*", "model")],
+    "splat_all": [("splat_all/point_cloud.ply", "splat"), ("splat_all/metrics.json", "metrics")],
 }
 
 
