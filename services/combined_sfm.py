@@ -62,6 +62,9 @@ default_conf: dict[str, Any] = {
     # to the combined model at that pose, observing the model's points their transferred matches reach
     "add_pnp_images": True,
     "add_max_px": 4.0,  # such an observation must reproject within this (ground pixels)
+    # ground images the mapper registered itself (not at an accepted PnP pose) are dropped when their
+    # observations leave the camera centre this uncertain (services.pose_uncertainty; None: kept)
+    "max_position_std_m": 0.25,
     "mapping": {
         "min_num_matches": 15,  # pairs with fewer matches are ignored by the mapper
         "abs_pose_min_num_inliers": 15,
@@ -429,6 +432,13 @@ def main(
         else:
             logger.warning("the mapper returned no model: keeping the seeded input model")
             rec = seed
+        dropped = drop_ill_determined(rec, pnp, conf["max_position_std_m"])
+        if dropped:
+            logger.info(
+                "%d ground images registered by the mapper dropped, their position ill-determined: %s",
+                len(dropped),
+                ", ".join(f"{g} (std {v:.2f} m)" for g, v in sorted(dropped.items())),
+            )
         added = add_pnp_images(rec, db_path, ids, offsets, ag, pnp, conf) if conf["add_pnp_images"] else []
         if added:
             logger.info(
@@ -456,7 +466,7 @@ def main(
         rec.write(str(sparse))
         shutil.copy(aerial_dir / "georef.json", out_dir / "georef.json")
 
-    report = build_report(rec, ids, priors, pnp, seed, geo_summary, timings, t_all, added)
+    report = build_report(rec, ids, priors, pnp, seed, geo_summary, timings, t_all, added, dropped)
     report["ground_pairs"] = gg_records
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     logger.info(
@@ -541,6 +551,38 @@ def build_input_model(
         n_seed,
     )
     return rec
+
+
+def drop_ill_determined(
+    rec: pycolmap.Reconstruction, pnp: dict[str, dict], max_std: float | None
+) -> dict[str, float]:
+    """Deregister the ground images the mapper registered (not those at an accepted PnP pose, checked by
+    the reducer) whose observations determine their centre worse than `max_std` metres (standard
+    deviation along the worst direction, pixel noise their RMS residual, at least 1 px). Returns
+    {name: std}."""
+    from services.pose_uncertainty import position_std
+
+    if not max_std:
+        return {}
+    out = {}
+    for im in list(rec.images.values()):
+        if not im.name.startswith("ground/") or not im.has_pose or pnp.get(im.name, {}).get("accepted"):
+            continue
+        obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
+        std = float("inf")
+        if len(obs) >= 3:
+            kp = np.array([o[0] for o in obs], float)
+            X = np.array([o[1] for o in obs], float)
+            m = np.asarray(im.cam_from_world().matrix())
+            pose = Pose(m[:, :3].copy(), m[:, 3].copy())
+            K = np.asarray(im.camera.calibration_matrix())
+            uv, _ = pose.project(K, X)
+            sigma = max(float(np.sqrt(np.mean(np.sum((uv - kp) ** 2, 1)))), 1.0)
+            std = position_std(pose, K, X, sigma)
+        if std > max_std:
+            rec.deregister_frame(im.frame_id)
+            out[im.name] = std
+    return out
 
 
 def add_pnp_images(
@@ -711,6 +753,7 @@ def build_report(
     timings: dict,
     t_all: float,
     added: list[str] | None = None,
+    dropped: dict[str, float] | None = None,
 ) -> dict:
     reg = {im.name: im for im in rec.images.values() if im.has_pose}
     sets = {
@@ -730,6 +773,10 @@ def build_report(
                 d["to_pos_m"] = float(np.linalg.norm(c - priors[g].center))
             if pnp.get(g, {}).get("accepted"):
                 d["to_pnp_m"] = float(np.linalg.norm(c - np.asarray(pnp[g]["center"], float)))
+        elif g in (dropped or {}):
+            d["reason"] = (
+                f"registered by the mapper, position ill-determined (std {dropped[g]:.2f} m): dropped"
+            )
         else:
             d["reason"] = (
                 "no verified aerial-ground or ground-ground matches strong enough to register it"

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from services.colmap_model import Camera, Pose, read_cameras_json, read_model
+from services.pose_uncertainty import position_std
 from services.tracks import complete_tracks
 from services.tracks import default_conf as tracks_default_conf
 from shared.logging import stage
@@ -81,6 +82,10 @@ default_conf: dict[str, Any] = {
         "depth_points": "trusted",
         "depth_trust": 0.01,
         "min_spread": 0.05,  # the inliers' bounding box must cover this fraction of the image
+        # the camera centre's standard deviation from its inliers (linearized, pixel noise = their RMS
+        # residual, >= 1 px) along its worst direction: inliers clustered on a patch of facade fit poses
+        # metres apart (a sideways shift trades with a turn), whatever their number (None: unchecked)
+        "max_position_std_m": 0.25,
         "min_inliers": 12,
         "min_inlier_ratio": 0.15,
         "prior_sigmas": 3.0,  # the pose must lie within this many POS standard deviations ...
@@ -443,6 +448,15 @@ def estimate_ground_pose(
         _err=err,
     )
     reasons = []
+    if inl.sum() >= 3:
+        # how well the inliers pin the camera centre (pixel noise: their RMS residual, at least 1 px)
+        sigma = max(float(np.sqrt(np.mean(err[inl] ** 2))), 1.0)
+        std = position_std(pose, camera.K, X[inl], sigma)
+        res["position_std_m"] = std
+        if pc.get("max_position_std_m") and std > pc["max_position_std_m"]:
+            reasons.append(
+                f"position ill-determined by its inliers: std {std:.2f} m (> {pc['max_position_std_m']})"
+            )
     if inl.any():
         span = kp[inl].max(0) - kp[inl].min(0)
         spread = float(span[0] * span[1] / (camera.width * camera.height))

@@ -1,0 +1,63 @@
+"""How well 2D-3D correspondences determine a camera's position.
+
+A ground image localized on points clustered in a small part of it (a patch of facade) fits them within
+a pixel at poses metres apart: a sideways shift trades with a turn. Its covariance tells: the pose's
+6x6 covariance from the linearized projection (unit weights, pixel noise sigma), and from it the
+standard deviation of the camera centre along its worst direction.
+
+    std_m = position_std(pose, camera.K, kp, X, sigma_px=1.0)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.colmap_model import Pose
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(n, 3) vectors -> (n, 3, 3) cross-product matrices."""
+    z = np.zeros(len(v))
+    return np.stack(
+        [
+            np.stack([z, -v[:, 2], v[:, 1]], 1),
+            np.stack([v[:, 2], z, -v[:, 0]], 1),
+            np.stack([-v[:, 1], v[:, 0], z], 1),
+        ],
+        1,
+    )
+
+
+def projection_jacobian(pose: Pose, K: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """d(pixel)/d(centre, rotation) of the projections of points X (n, 3): (2n, 6). The rotation is a
+    small turn w of the camera frame, cam_from_world R = exp([w]x) R."""
+    X = np.asarray(X, float).reshape(-1, 3)
+    xc = (pose.R @ (X - pose.center).T).T  # (n, 3) camera coordinates
+    x, y, z = xc[:, 0], xc[:, 1], xc[:, 2]
+    fx, fy = K[0, 0], K[1, 1]
+    dproj = np.zeros((len(X), 2, 3))
+    dproj[:, 0, 0] = fx / z
+    dproj[:, 0, 2] = -fx * x / z**2
+    dproj[:, 1, 1] = fy / z
+    dproj[:, 1, 2] = -fy * y / z**2
+    d_center = np.broadcast_to(-pose.R, (len(X), 3, 3))
+    d_rot = -_skew(xc)
+    J = np.concatenate([dproj @ d_center, dproj @ d_rot], 2)  # (n, 2, 6)
+    return J.reshape(-1, 6)
+
+
+def pose_covariance(pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0) -> np.ndarray:
+    """Covariance (6, 6) of (centre in metres, rotation in radians); inf where undetermined."""
+    J = projection_jacobian(pose, K, X)
+    H = J.T @ J
+    if len(X) < 3 or np.linalg.cond(H) > 1e15:
+        return np.full((6, 6), np.inf)
+    return sigma_px**2 * np.linalg.inv(H)
+
+
+def position_std(pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0) -> float:
+    """Standard deviation (m) of the camera centre along its least determined direction."""
+    cov = pose_covariance(pose, K, X, sigma_px)
+    if not np.isfinite(cov).all():
+        return float("inf")
+    return float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))

@@ -1,0 +1,73 @@
+"""How well 2D-3D correspondences pin a camera's centre (services.pose_uncertainty), and the reducer's
+use of it: a ground pose fixed by a patch of facade is not accepted, however many points it has."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from services import transfer
+from services.colmap_model import Camera, Pose
+from services.pose_uncertainty import position_std, projection_jacobian
+from services.viewpoints import look_at
+
+CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
+POSE = look_at(np.array([0.0, 0.0, 1.7]), np.array([0.0, 20.0, 4.0]))
+
+
+def _points(
+    rng,
+    u: tuple[float, float],
+    v: tuple[float, float],
+    n: int = 60,
+    depth: tuple[float, float] = (15.0, 30.0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """n keypoints in the box u x v (pixels) and their points at depths in `depth` (equal: a facade
+    facing the camera)."""
+    kp = np.stack([rng.uniform(*u, n), rng.uniform(*v, n)], 1)
+    return kp, POSE.unproject(CAM.K, kp, rng.uniform(*depth, n))
+
+
+FACADE = (20.0, 20.0)
+
+
+def test_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    _, X = _points(rng, (0, 1024), (0, 768), 10)
+    J = projection_jacobian(POSE, CAM.K, X)
+
+    def project(params: np.ndarray) -> np.ndarray:
+        R = Rotation.from_rotvec(params[3:]).as_matrix() @ POSE.R
+        uv, _ = Pose.from_center(R.T, POSE.center + params[:3]).project(CAM.K, X)
+        return uv.reshape(-1)
+
+    eps = 1e-6
+    num = np.stack([(project(e * eps) - project(-e * eps)) / (2 * eps) for e in np.eye(6)], 1)
+    assert np.allclose(J, num, rtol=1e-4, atol=1e-3)
+
+
+def test_spread_points_pin_the_centre_clustered_ones_do_not():
+    rng = np.random.default_rng(1)
+    _, X_spread = _points(rng, (50, 970), (50, 720))
+    _, X_patch = _points(rng, (430, 600), (300, 440), depth=FACADE)  # 3% of the image: a patch of facade
+    s_spread = position_std(POSE, CAM.K, X_spread, 1.0)
+    s_patch = position_std(POSE, CAM.K, X_patch, 1.0)
+    assert s_spread < 0.1
+    assert s_patch > 10 * s_spread and s_patch > 0.5
+    assert position_std(POSE, CAM.K, X_spread, 2.0) == np.float64(2.0) * s_spread  # linear in the noise
+    assert position_std(POSE, CAM.K, X_spread[:2], 1.0) == float("inf")
+
+
+def test_the_reducer_rejects_a_pose_its_inliers_leave_undetermined():
+    """Exact correspondences in a patch of the image: the PnP pose fits them, but its centre is not
+    determined to the metre; the reducer says so and does not accept it. Spread ones are accepted."""
+    rng = np.random.default_rng(2)
+    conf = transfer._merge(transfer.default_conf, {"pnp": {"min_spread": 0.0}})  # only the new check
+    kp, X = _points(rng, (430, 600), (300, 440), depth=FACADE)
+    r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), conf)
+    assert r["num_inliers"] >= 58 and r["position_std_m"] > conf["pnp"]["max_position_std_m"]
+    assert not r["accepted"] and "ill-determined" in r["reason"]
+    kp, X = _points(rng, (50, 970), (50, 720))
+    r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), conf)
+    assert r["accepted"] and r["position_std_m"] < 0.1
+    assert np.linalg.norm(np.asarray(r["center"]) - POSE.center) < 0.05
