@@ -165,7 +165,10 @@ def run(
     except (FileNotFoundError, ValidationError) as e:
         _fail(str(e))
     t0 = time.perf_counter()
-    results = run_job(job, from_stage=from_stage, force=force)
+    try:
+        results = run_job(job, from_stage=from_stage, force=force)
+    except pipeline.StageInputsMissing as e:
+        _fail(str(e))
     typer.echo(
         f"{out}: {sum(not r['skipped'] for r in results.values())} stage(s) run, "
         f"{sum(r['skipped'] for r in results.values())} up to date, {time.perf_counter() - t0:.0f} s"

@@ -695,6 +695,30 @@ assert tuple(REGISTRY) == STAGES, "the registry must follow shared.job_options.S
 
 
 # -- runner --------------------------------------------------------------------------------------
+class StageInputsMissing(ValueError):
+    """A stage was asked for before the stages that make its inputs."""
+
+
+def check_inputs(job: Job, stage: str) -> None:
+    """Raise StageInputsMissing when an input that another stage makes does not exist yet."""
+    need: dict[str, list[str]] = {}
+    for p in REGISTRY[stage].inputs(job):
+        if Path(p).exists():
+            continue
+        for other, sd in REGISTRY.items():
+            if other != stage and any(
+                Path(p) == Path(o) or Path(o) in Path(p).parents for o in sd.outputs(job)
+            ):
+                need.setdefault(other, []).append(str(Path(p).relative_to(job.root)))
+                break
+    if need:
+        made = "; ".join(
+            f"{', '.join(v)} (made by {k})"
+            for k, v in sorted(need.items(), key=lambda kv: STAGES.index(kv[0]))
+        )
+        raise StageInputsMissing(f"stage {stage} needs {made}: run those stages first")
+
+
 def run_stage(job: Job, stage: str, progress: Progress | None = None, force: bool = False) -> dict:
     """Run one stage unless it is up to date; returns its marker (with "skipped": True when skipped)."""
     sd = REGISTRY[stage]
@@ -703,6 +727,7 @@ def run_stage(job: Job, stage: str, progress: Progress | None = None, force: boo
         m = read_marker(job, stage) or {}
         prog(stage, 1.0, "up to date")
         return {**m, "skipped": True}
+    check_inputs(job, stage)
     prog(stage, 0.0, "started")
     t0 = time.perf_counter()
     summary = sd.run(job, lambda f, m: prog(stage, float(min(max(f, 0.0), 1.0)), m))

@@ -94,3 +94,23 @@ def test_synth_rejects_unknown_preset(tmp_path):
     result = runner.invoke(app, ["synth", str(tmp_path / "s"), "--preset", "nope"])
     assert result.exit_code == 2
     assert "nope" in result.output
+
+
+def test_run_of_a_stage_before_its_inputs_exist_says_which_stages_to_run(tiny_scene, tmp_path):
+    """`midview run --stages splat_all` (or reduce) on a new job folder: a clear message naming the
+    stages that make the missing inputs, exit code 2, nothing run."""
+    s = tiny_scene
+    args = [str(s / "images" / "aerial"), str(s / "images" / "ground"), str(s / "pos.csv")]
+    out = tmp_path / "job"
+    result = runner.invoke(
+        app, ["run", *args, str(out), "--cameras", str(s / "cameras.json"), "--stages", "splat_all"]
+    )
+    assert result.exit_code == 2, result.output
+    assert "splat_all needs combined/sparse (made by combined_sfm)" in result.output
+    result = runner.invoke(
+        app, ["run", *args, str(out), "--cameras", str(s / "cameras.json"), "--stages", "reduce"]
+    )
+    assert result.exit_code == 2
+    for made_by in ("aerial_sfm", "render_views", "match_views"):
+        assert f"(made by {made_by})" in result.output
+    assert not (out / "stages" / "reduce.json").exists() and not (out / "transfer").exists()
