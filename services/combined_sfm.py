@@ -560,7 +560,7 @@ def drop_ill_determined(
     the reducer) whose observations determine their centre worse than `max_std` metres (standard
     deviation along the worst direction, pixel noise their RMS residual, at least 1 px). Returns
     {name: std}."""
-    from services.pose_uncertainty import position_std
+    from services.pose_uncertainty import fit_position_std
 
     if not max_std:
         return {}
@@ -569,16 +569,13 @@ def drop_ill_determined(
         if not im.name.startswith("ground/") or not im.has_pose or pnp.get(im.name, {}).get("accepted"):
             continue
         obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
-        std = float("inf")
-        if len(obs) >= 3:
-            kp = np.array([o[0] for o in obs], float)
-            X = np.array([o[1] for o in obs], float)
-            m = np.asarray(im.cam_from_world().matrix())
-            pose = Pose(m[:, :3].copy(), m[:, 3].copy())
-            K = np.asarray(im.camera.calibration_matrix())
-            uv, _ = pose.project(K, X)
-            sigma = max(float(np.sqrt(np.mean(np.sum((uv - kp) ** 2, 1)))), 1.0)
-            std = position_std(pose, K, X, sigma)
+        m = np.asarray(im.cam_from_world().matrix())
+        std = fit_position_std(
+            Pose(m[:, :3].copy(), m[:, 3].copy()),
+            np.asarray(im.camera.calibration_matrix()),
+            np.array([o[0] for o in obs], float).reshape(-1, 2),
+            np.array([o[1] for o in obs], float).reshape(-1, 3),
+        )
         if std > max_std:
             rec.deregister_frame(im.frame_id)
             out[im.name] = std

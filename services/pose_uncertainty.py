@@ -5,7 +5,8 @@ a pixel at poses metres apart: a sideways shift trades with a turn. Its covarian
 6x6 covariance from the linearized projection (unit weights, pixel noise sigma), and from it the
 standard deviation of the camera centre along its worst direction.
 
-    std_m = position_std(pose, camera.K, kp, X, sigma_px=1.0)
+    std_m = position_std(pose, camera.K, X, sigma_px=1.0)
+    std_m = fit_position_std(pose, camera.K, kp, X)  # pixel noise: the fit's RMS residual, >= 1 px
 """
 
 from __future__ import annotations
@@ -61,3 +62,16 @@ def position_std(pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0
     if not np.isfinite(cov).all():
         return float("inf")
     return float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
+
+
+def fit_position_std(
+    pose: Pose, K: np.ndarray, kp: np.ndarray, X: np.ndarray, min_sigma_px: float = 1.0
+) -> float:
+    """position_std with the pixel noise taken from the fit itself: the RMS distance of the points'
+    projections to their keypoints kp (n, 2), at least min_sigma_px; inf for fewer than 3 points."""
+    X = np.asarray(X, float).reshape(-1, 3)
+    if len(X) < 3:
+        return float("inf")
+    uv, _ = pose.project(K, X)
+    sigma = max(float(np.sqrt(np.mean(np.sum((uv - np.asarray(kp, float)) ** 2, 1)))), min_sigma_px)
+    return position_std(pose, K, X, sigma)

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from services.colmap_model import Camera, Pose, read_cameras_json, read_model
-from services.pose_uncertainty import position_std
+from services.pose_uncertainty import fit_position_std
 from services.tracks import complete_tracks
 from services.tracks import default_conf as tracks_default_conf
 from shared.logging import stage
@@ -450,8 +450,7 @@ def estimate_ground_pose(
     reasons = []
     if inl.sum() >= 3:
         # how well the inliers pin the camera centre (pixel noise: their RMS residual, at least 1 px)
-        sigma = max(float(np.sqrt(np.mean(err[inl] ** 2))), 1.0)
-        std = position_std(pose, camera.K, X[inl], sigma)
+        std = fit_position_std(pose, camera.K, kp[inl], X[inl])
         res["position_std_m"] = std
         if pc.get("max_position_std_m") and std > pc["max_position_std_m"]:
             reasons.append(

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from services import transfer
 from services.colmap_model import Camera, Pose
-from services.pose_uncertainty import position_std, projection_jacobian
+from services.pose_uncertainty import fit_position_std, position_std, projection_jacobian
 from services.viewpoints import look_at
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
@@ -71,3 +71,14 @@ def test_the_reducer_rejects_a_pose_its_inliers_leave_undetermined():
     r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), conf)
     assert r["accepted"] and r["position_std_m"] < 0.1
     assert np.linalg.norm(np.asarray(r["center"]) - POSE.center) < 0.05
+
+
+def test_fit_std_takes_its_pixel_noise_from_the_residuals():
+    rng = np.random.default_rng(3)
+    kp, X = _points(rng, (50, 970), (50, 720))
+    exact = position_std(POSE, CAM.K, X, 1.0)
+    assert fit_position_std(POSE, CAM.K, kp, X) == exact  # exact keypoints: the 1 px floor
+    noisy = kp + rng.normal(0, 3.0, kp.shape)
+    rms = np.sqrt(np.mean(np.sum((noisy - kp) ** 2, 1)))
+    assert np.isclose(fit_position_std(POSE, CAM.K, noisy, X), rms * exact)
+    assert fit_position_std(POSE, CAM.K, kp[:2], X[:2]) == float("inf")
