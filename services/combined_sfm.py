@@ -62,6 +62,7 @@ default_conf: dict[str, Any] = {
     # to the combined model at that pose, observing the model's points their transferred matches reach
     "add_pnp_images": True,
     "add_max_px": 4.0,  # such an observation must reproject within this (ground pixels)
+    "add_min_angle_deg": 2.0,  # a new aerial-ground point must be seen under this angle at least
     # ground images the mapper registered itself (not at an accepted PnP pose) are dropped when their
     # observations leave the camera centre this uncertain (services.pose_uncertainty; None: kept)
     "max_position_std_m": 0.25,
@@ -466,7 +467,19 @@ def main(
         rec.write(str(sparse))
         shutil.copy(aerial_dir / "georef.json", out_dir / "georef.json")
 
-    report = build_report(rec, ids, priors, pnp, seed, geo_summary, timings, t_all, added, dropped)
+    report = build_report(
+        rec,
+        ids,
+        priors,
+        pnp,
+        seed,
+        geo_summary,
+        timings,
+        t_all,
+        added,
+        dropped,
+        conf["mapping"]["fix_aerial"],
+    )
     report["ground_pairs"] = gg_records
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     logger.info(
@@ -617,8 +630,15 @@ def add_pnp_images(
             rec.add_camera_with_trivial_rig(cams[dbim.camera_id])
         r = pnp[g]
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(r["R"], float)), np.asarray(r["t"], float))
-        im = pycolmap.Image(name=g, keypoints=kps[g], camera_id=dbim.camera_id, image_id=ids[g])
-        rec.add_image_with_trivial_frame(im, pose)
+        if (
+            ids[g] in rec.images
+        ):  # an unregistered image of the model (the input model, when the mapper made none)
+            frame_id = rec.images[ids[g]].frame_id
+            rec.frames[frame_id].rig_from_world = pose  # trivial rig: the camera is the rig
+            rec.register_frame(frame_id)
+        else:
+            im = pycolmap.Image(name=g, keypoints=kps[g], camera_id=dbim.camera_id, image_id=ids[g])
+            rec.add_image_with_trivial_frame(im, pose)
         added.append(g)
     # observations: of the aerial keypoint's point where it has one, else of a new two-view point
     all_kps: dict[int, np.ndarray] = {ids[g]: kps[g] for g in added}
@@ -654,13 +674,20 @@ def add_pnp_images(
         if len(obs) < 2:
             continue
         X = _triangulate(rec, obs, all_kps, conf["add_max_px"])
-        if X is None:
+        if X is None or _max_angle_deg(rec, X, [i for i, _ in obs]) < conf["add_min_angle_deg"]:
             continue
         rec.add_point3D(
             X, pycolmap.Track([pycolmap.TrackElement(i, k) for i, k in obs]), np.full(3, 128, np.uint8)
         )
         used |= {(gid, -ig - 1) for gid, ig in obs[1:]}
     return added
+
+
+def _max_angle_deg(rec: pycolmap.Reconstruction, X: np.ndarray, image_ids: list[int]) -> float:
+    """The largest angle (degrees) at X between the rays of the images `image_ids`."""
+    d = np.array([np.asarray(rec.images[i].projection_center()) - X for i in image_ids])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return float(np.degrees(np.arccos(np.clip((d @ d.T).min(), -1.0, 1.0))))
 
 
 def _projection(image: pycolmap.Image) -> np.ndarray:
@@ -751,8 +778,12 @@ def build_report(
     t_all: float,
     added: list[str] | None = None,
     dropped: dict[str, float] | None = None,
+    conf_fixed: bool = True,
 ) -> dict:
     reg = {im.name: im for im in rec.images.values() if im.has_pose}
+    seeded = {im.name for im in seed.images.values() if im.has_pose and im.name.startswith("ground/")}
+    if not conf_fixed:
+        seeded = set()  # refined by the mapper's bundle adjustment: no longer the PnP pose
     sets = {
         "aerial": sorted(n for n in ids if n.startswith("aerial/")),
         "ground": sorted(n for n in ids if n.startswith("ground/")),
@@ -762,7 +793,8 @@ def build_report(
     for g in sets["ground"]:
         d: dict[str, Any] = {"registered": g in reg}
         if g in reg:
-            d["registered_by"] = "pnp" if g in (added or []) else "mapper"
+            # "pnp": at the reducer's PnP pose (seeded, kept fixed by the mapper, or added after it)
+            d["registered_by"] = "pnp" if g in (added or []) or g in seeded else "mapper"
             d["observations"] = int(reg[g].num_points3D)
             c = np.asarray(reg[g].projection_center())
             d["center"] = c.tolist()

@@ -119,6 +119,35 @@ def test_every_localized_ground_image_is_in_the_combined_model(tiny_job):
     assert rep["num_registered"]["ground"] == sum(n.startswith("ground/") for n in reg)
 
 
+def test_localized_ground_images_survive_a_mapper_that_makes_no_model(tiny_job, tmp_path, monkeypatch):
+    """When pycolmap's mapper returns no model, the combined model is the seeded input model with the
+    localized ground images added at their PnP poses (not an error, not an empty result)."""
+    import pycolmap
+
+    from services import combined_sfm
+
+    job, _, _ = tiny_job
+    monkeypatch.setattr(pycolmap, "incremental_mapping", lambda *a, **k: {})
+    out = combined_sfm.main(
+        job.combined_conf(),
+        job.dir("sfm"),
+        job.dir("transfer"),
+        job.features_path,
+        job.match_conf(),
+        job.image_dir,
+        job.pos,
+        job.cameras,
+        tmp_path / "combined",
+    )
+    rep = json.loads((tmp_path / "combined" / "report.json").read_text())
+    poses = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
+    accepted = {g for g, r in poses.items() if r["accepted"]}
+    assert rep["num_registered"]["aerial"] == 20
+    assert {g for g, d in rep["ground"].items() if d["registered"]} == accepted
+    assert all(rep["ground"][g]["registered_by"] == "pnp" for g in accepted)
+    assert pycolmap.Reconstruction(str(out)).num_reg_images() == 20 + len(accepted)
+
+
 def test_rerun_skips_every_stage(tiny_job):
     job, _, _ = tiny_job
     again = pipeline.run(pipeline.Job.load(job.root))
