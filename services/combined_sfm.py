@@ -192,6 +192,7 @@ def verify_ground_pair(
     (cam_from_world; std = (horizontal m, vertical m, attitude deg)). A fundamental matrix alone
     accepts repeated facade patterns between images that share nothing; the POS rejects them.
     Returns no inliers when the check fails."""
+    from services.transfer import rotation_angle_deg
     from services.viewpoints import angle_deg
 
     none = np.zeros((0, 2), np.int64)
@@ -221,7 +222,7 @@ def verify_ground_pair(
     R_est = np.asarray(rel.rotation.matrix())
     R_pos = prior1.R @ prior0.R.T
     k = float(conf["prior_sigmas"])
-    drot = float(np.degrees(np.arccos(np.clip((np.trace(R_est @ R_pos.T) - 1) / 2, -1, 1))))
+    drot = rotation_angle_deg(R_est @ R_pos.T)
     lim_rot = max(k * math.sqrt(3.0 * (std0[2] ** 2 + std1[2] ** 2)), float(conf["min_rotation_deg"]))
     rec.update(rotation_deg=drot, rotation_limit_deg=lim_rot)
     reasons = []
@@ -630,9 +631,7 @@ def add_pnp_images(
             rec.add_camera_with_trivial_rig(cams[dbim.camera_id])
         r = pnp[g]
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(r["R"], float)), np.asarray(r["t"], float))
-        if (
-            ids[g] in rec.images
-        ):  # an unregistered image of the model (the input model, when the mapper made none)
+        if ids[g] in rec.images:  # unregistered in the model (the input model: the mapper made none)
             frame_id = rec.images[ids[g]].frame_id
             rec.frames[frame_id].rig_from_world = pose  # trivial rig: the camera is the rig
             rec.register_frame(frame_id)

@@ -435,9 +435,7 @@ def train_splat(
         "resolution": [data.views[0].width, data.views[0].height],
         "seconds": {"train": train_s},
         "test": {k: test[k] for k in ("psnr", "ssim", "n_views") if k in test},
-    }
-    metrics["num_views"] = {
-        s: sum(v.name.startswith(f"{s}/") for v in data.views) for s in ("aerial", "ground")
+        "num_views": {s: sum(v.name.startswith(f"{s}/") for v in data.views) for s in ("aerial", "ground")},
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     return {"num_gaussians": metrics["num_gaussians"], "test_psnr": test.get("psnr")}
@@ -558,11 +556,12 @@ def _reduce(job: Job, report) -> dict:
     }
 
 
-def _combined_sfm(job: Job, report) -> dict:
+def combined_reconstruction(job: Job, out_dir: Path, report=None) -> Path:
+    """services.combined_sfm on the job's aerial model, reducer output and features, into out_dir
+    (the stage's folder, or another one); returns the model folder."""
     from services import combined_sfm
 
-    _set_threads(job)
-    combined_sfm.main(
+    return combined_sfm.main(
         job.combined_conf(),
         job.dir("sfm"),
         job.dir("transfer"),
@@ -571,9 +570,14 @@ def _combined_sfm(job: Job, report) -> dict:
         job.image_dir,
         job.pos,
         job.cameras,
-        job.dir("combined"),
+        out_dir,
         progress=report,
     )
+
+
+def _combined_sfm(job: Job, report) -> dict:
+    _set_threads(job)
+    combined_reconstruction(job, job.dir("combined"), report)
     rep = json.loads((job.dir("combined") / "report.json").read_text())
     return {"NRI": rep["NRI"], "num_points3D": rep["num_points3D"]}
 
@@ -798,9 +802,10 @@ def status(job: Job | str | Path) -> dict[str, str]:
     job = job if isinstance(job, Job) else Job.load(job)
     out = {}
     for s in STAGES:
-        if s in OPTIONAL_STAGES and s not in job.options.stages and read_marker(job, s) is None:
+        marker = read_marker(job, s)
+        if marker is None and s in OPTIONAL_STAGES and s not in job.options.stages:
             continue
-        if read_marker(job, s) is None:
+        if marker is None:
             out[s] = "pending"
         else:
             out[s] = "done" if is_done(job, s) else "stale"

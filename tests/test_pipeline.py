@@ -124,21 +124,9 @@ def test_localized_ground_images_survive_a_mapper_that_makes_no_model(tiny_job, 
     localized ground images added at their PnP poses (not an error, not an empty result)."""
     import pycolmap
 
-    from services import combined_sfm
-
     job, _, _ = tiny_job
     monkeypatch.setattr(pycolmap, "incremental_mapping", lambda *a, **k: {})
-    out = combined_sfm.main(
-        job.combined_conf(),
-        job.dir("sfm"),
-        job.dir("transfer"),
-        job.features_path,
-        job.match_conf(),
-        job.image_dir,
-        job.pos,
-        job.cameras,
-        tmp_path / "combined",
-    )
+    out = pipeline.combined_reconstruction(job, tmp_path / "combined")
     rep = json.loads((tmp_path / "combined" / "report.json").read_text())
     poses = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
     accepted = {g for g, r in poses.items() if r["accepted"]}

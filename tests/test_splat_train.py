@@ -32,6 +32,20 @@ def _poses():
     return [look_at(np.array([x, -4.0, 3.0]), np.zeros(3)) for x in (-1.0, 0.0, 1.0)]
 
 
+def _write_scene(tmp_path, model, poses, pts, cols) -> dict:
+    """Renders of `model` at `poses` as tmp_path/images/aerial/A####.png and a COLMAP model of them with
+    points pts in tmp_path/sparse; returns the model's images {name: (set, pose)}."""
+    images = {}
+    (tmp_path / "images" / "aerial").mkdir(parents=True, exist_ok=True)
+    for i, pose in enumerate(poses):
+        name = f"aerial/A{i:04d}.png"
+        img = render(model, CAM, pose, backend="cpu")["color"]
+        cv2.imwrite(str(tmp_path / "images" / name), (img[..., ::-1] * 255).round().astype(np.uint8))
+        images[name] = ("aerial", pose)
+    write_model(tmp_path / "sparse", {"aerial": CAM}, images, pts, (cols * 255).astype(np.uint8))
+    return images
+
+
 def _views(model):
     views = []
     for i, pose in enumerate(_poses()):
@@ -156,14 +170,7 @@ def test_main_and_cli(tiny, tmp_path):
 
     model, _, pts, cols = tiny
     poses = [look_at(np.array([x, -4.0, 3.0]), np.zeros(3)) for x in np.linspace(-1.2, 1.2, 9)]
-    images = {}
-    for i, pose in enumerate(poses):
-        name = f"aerial/A{i:04d}.png"
-        img = render(model, CAM, pose, backend="cpu")["color"]
-        (tmp_path / "images" / "aerial").mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(tmp_path / "images" / name), (img[..., ::-1] * 255).round().astype(np.uint8))
-        images[name] = ("aerial", pose)
-    write_model(tmp_path / "sparse", {"aerial": CAM}, images, pts, (cols * 255).astype(np.uint8))
+    _write_scene(tmp_path, model, poses, pts, cols)
     runner = CliRunner()
     args = ["train", str(tmp_path / "sparse"), str(tmp_path / "images"), str(tmp_path / "out")]
     res = runner.invoke(
@@ -401,14 +408,7 @@ def test_pipeline_training_restarts_when_the_model_changes(tiny, tmp_path):
     from services import pipeline
 
     model, _, pts, cols = tiny
-    images = {}
-    for i, pose in enumerate(_poses()):
-        name = f"aerial/A{i:04d}.png"
-        img = render(model, CAM, pose, backend="cpu")["color"]
-        (tmp_path / "images" / "aerial").mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(tmp_path / "images" / name), (img[..., ::-1] * 255).round().astype(np.uint8))
-        images[name] = ("aerial", pose)
-    write_model(tmp_path / "sparse", {"aerial": CAM}, images, pts, (cols * 255).astype(np.uint8))
+    images = _write_scene(tmp_path, model, _poses(), pts, cols)
     conf = _merge(confs["fast"], {**_tiny_conf(steps=20), "ckpt_every": 10, "max_width": W})
     steps_seen: list[str] = []
 
