@@ -82,3 +82,15 @@ def test_fit_std_takes_its_pixel_noise_from_the_residuals():
     rms = np.sqrt(np.mean(np.sum((noisy - kp) ** 2, 1)))
     assert np.isclose(fit_position_std(POSE, CAM.K, noisy, X), rms * exact)
     assert fit_position_std(POSE, CAM.K, kp[:2], X[:2]) == float("inf")
+
+
+def test_a_consensus_of_few_inliers_verifies_matches_but_gives_no_pose():
+    """15 exact, well spread correspondences: enough for a consensus (min_inliers), too few for a pose
+    (min_pose_inliers): 3D points biased by a render would go unseen by the covariance."""
+    rng = np.random.default_rng(5)
+    kp, X = _points(rng, (50, 970), (50, 720), n=15)
+    r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), transfer.default_conf)
+    assert r["consensus"] and r["num_inliers"] == 15 and r["position_std_m"] < 0.25
+    assert not r["accepted"] and "too few for a pose" in r["reason"]
+    kp, X = _points(rng, (50, 970), (50, 720), n=25)
+    assert transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), transfer.default_conf)["accepted"]
