@@ -121,7 +121,10 @@ class CeleryDispatcher:
         except Exception:
             log.exception("job %s: could not read its root task id", job_id)
         if ids:
-            self.app.control.revoke(sorted(ids), terminate=True, signal="SIGTERM")
+            # SIGKILL: the running task is native code (pycolmap, torch) that cannot stop cleanly, and
+            # pycolmap's glog failure handler catches SIGTERM to print a stack trace, which can deadlock
+            # inside malloc (a cancel left the pool process hung); the database is the source of truth
+            self.app.control.revoke(sorted(ids), terminate=True, signal="SIGKILL")
             log.info("job %s: revoked %d tasks", job_id, len(ids))
         try:  # a terminated task cannot close its stage run itself
             from shared.db.models import Job, JobStatus
