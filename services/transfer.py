@@ -50,6 +50,7 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose, read_cameras_json, read_model
 from services.pose_uncertainty import fit_position_std
+from services.prior_pnp import prior_gated_pnp, reprojection_errors
 from services.tracks import complete_tracks
 from services.tracks import default_conf as tracks_default_conf
 from shared.logging import stage
@@ -81,6 +82,7 @@ default_conf: dict[str, Any] = {
         # difference <= depth_trust; exact renders qualify, a CPU-trained 3DGS hardly does)
         "depth_points": "trusted",
         "depth_trust": 0.01,
+        "min_trust_views": 5,  # measured views needed to trust the renderer where a view can't be measured
         "min_spread": 0.05,  # the inliers' bounding box must cover this fraction of the image
         # the camera centre's standard deviation from its inliers (linearized, pixel noise = their RMS
         # residual, >= 1 px) along its worst direction: inliers clustered on a patch of facade fit poses
@@ -103,6 +105,9 @@ default_conf: dict[str, Any] = {
         # keep the matches that agree with the PnP pose when enough do (min_inliers, min_inlier_ratio),
         # even when the pose is not accepted (spread, POS): the matches are verified, the pose is not used
         "verify_on_consensus": True,
+        # when the pose with the most inliers disagrees with the POS, a second RANSAC keeps only the
+        # hypotheses that agree with it (services.prior_pnp): repeated facades can outvote the true pose
+        "prior_gated": True,
         "seed": 0,
     },
     # aerial points observed in every aerial image that sees them (services.tracks: guided matching with
@@ -401,6 +406,33 @@ def prior_chi2(dxy: float, dz: float, drot: float, std: tuple[float, float, floa
     return float((dxy / sxy) ** 2 + (dz / sz) ** 2 + (drot / satt) ** 2)
 
 
+def prior_agreement(
+    pose: Pose, prior: Pose, prior_std: tuple[float, float, float] | None, pc: dict
+) -> tuple[dict, dict, list[str]]:
+    """How far `pose` is from its POS `prior`: (differences, limits, reasons it disagrees). Position and
+    attitude each within prior_sigmas standard deviations (or the floors), and jointly (chi-square)."""
+    d = pose.center - prior.center
+    dxy, dz = float(np.linalg.norm(d[:2])), float(abs(d[2]))
+    drot = rotation_angle_deg(pose.R @ prior.R.T)
+    sxy, sz, satt = prior_std or (3.0, 5.0, 5.0)
+    k = pc["prior_sigmas"]
+    lim_xy, lim_z = max(k * sxy * math.sqrt(2.0), pc["min_position_m"]), max(k * sz, pc["min_height_m"])
+    lim_rot = max(k * satt * math.sqrt(3.0), pc["min_rotation_deg"])
+    chi2 = prior_chi2(dxy, dz, drot, (sxy, sz, satt), pc)
+    to_pos = {"horizontal_m": dxy, "vertical_m": dz, "rotation_deg": drot, "chi2": chi2}
+    limits = {"horizontal_m": lim_xy, "vertical_m": lim_z, "rotation_deg": lim_rot}
+    reasons = []
+    if dxy > lim_xy:
+        reasons.append(f"{dxy:.1f} m from the POS horizontally (> {lim_xy:.1f})")
+    if dz > lim_z:
+        reasons.append(f"{dz:.1f} m from the POS vertically (> {lim_z:.1f})")
+    if drot > lim_rot:
+        reasons.append(f"{drot:.1f} deg from the POS attitude (> {lim_rot:.1f})")
+    if pc.get("prior_chi2") and chi2 > pc["prior_chi2"]:
+        reasons.append(f"position and attitude jointly {chi2:.1f} (chi-square > {pc['prior_chi2']:.1f})")
+    return to_pos, limits, reasons
+
+
 def estimate_ground_pose(
     kp: np.ndarray,
     X: np.ndarray,
@@ -433,14 +465,26 @@ def estimate_ground_pose(
     except Exception as e:  # pycolmap raises on degenerate input
         out = None
         logger.debug("PnP failed: %s", e)
-    if out is None:
+    pose = None
+    solver = "pycolmap"
+    if out is not None:
+        m = np.asarray(out["cam_from_world"].matrix())
+        pose = Pose(m[:, :3].copy(), m[:, 3].copy())
+    disagrees = pose is None or (prior is not None and bool(prior_agreement(pose, prior, prior_std, pc)[2]))
+    if prior is not None and pc["prior_gated"] and disagrees:
+        # the pose with the most inliers disagrees with the POS: the best one that agrees with it
+        def gate(p: Pose) -> bool:
+            return not prior_agreement(p, prior, prior_std, pc)[2]
+
+        gated, _ = prior_gated_pnp(kp, X, camera.K, gate, pc["ransac_px"], seed=int(pc["seed"]))
+        if gated is not None:
+            pose, solver = gated, "prior-gated"
+    if pose is None:
         res["reason"] = "PnP RANSAC found no pose"
         return res
-    m = np.asarray(out["cam_from_world"].matrix())
-    pose = Pose(m[:, :3].copy(), m[:, 3].copy())
-    uv, z = pose.project(camera.K, X)
-    err = np.where(z > 0, np.linalg.norm(uv - kp, axis=1), np.inf)
+    err = reprojection_errors(pose, camera.K, kp, X)
     inl = err <= pc["keep_px"]
+    res["solver"] = solver
     res.update(
         R=pose.R.tolist(),
         t=pose.t.tolist(),
@@ -480,30 +524,25 @@ def estimate_ground_pose(
     # ill-determined (clustered or planar points) and fails the spread check above or the POS checks below
     res["consensus"] = bool(inl.sum() >= pc["min_inliers"] and inl.mean() >= pc["min_inlier_ratio"])
     if prior is not None:
-        d = pose.center - prior.center
-        dxy, dz = float(np.linalg.norm(d[:2])), float(abs(d[2]))
-        drot = rotation_angle_deg(pose.R @ prior.R.T)
-        sxy, sz, satt = prior_std or (3.0, 5.0, 5.0)
-        k = pc["prior_sigmas"]
-        lim_xy, lim_z = max(k * sxy * math.sqrt(2.0), pc["min_position_m"]), max(k * sz, pc["min_height_m"])
-        lim_rot = max(k * satt * math.sqrt(3.0), pc["min_rotation_deg"])
-        res.update(
-            to_pos={"horizontal_m": dxy, "vertical_m": dz, "rotation_deg": drot},
-            limits={"horizontal_m": lim_xy, "vertical_m": lim_z, "rotation_deg": lim_rot},
-        )
-        if dxy > lim_xy:
-            reasons.append(f"{dxy:.1f} m from the POS horizontally (> {lim_xy:.1f})")
-        if dz > lim_z:
-            reasons.append(f"{dz:.1f} m from the POS vertically (> {lim_z:.1f})")
-        if drot > lim_rot:
-            reasons.append(f"{drot:.1f} deg from the POS attitude (> {lim_rot:.1f})")
-        chi2 = prior_chi2(dxy, dz, drot, (sxy, sz, satt), pc)
-        res["to_pos"]["chi2"] = chi2
-        if pc.get("prior_chi2") and chi2 > pc["prior_chi2"]:
-            reasons.append(f"position and attitude jointly {chi2:.1f} (chi-square > {pc['prior_chi2']:.1f})")
+        to_pos, limits, prior_reasons = prior_agreement(pose, prior, prior_std, pc)
+        res.update(to_pos=to_pos, limits=limits)
+        reasons += prior_reasons
     res["accepted"] = not reasons
     res["reason"] = "; ".join(reasons) if reasons else "ok"
     return res
+
+
+def trusted_depth_views(view_names: list[str], depth_error: dict[str, float], pc: dict) -> list[int]:
+    """Indices of the views whose rendered depth lifts ground matches to 3D: median relative difference
+    to their triangulated aerial points <= depth_trust. A view without aerial points to measure (a low
+    view that matches only the ground image) is trusted when the renderer is: the median over the
+    measured views (at least min_trust_views of them) is within depth_trust."""
+    tol = pc["depth_trust"]
+    measured = list(depth_error.values())
+    renderer_ok = len(measured) >= pc["min_trust_views"] and float(np.median(measured)) <= tol
+    return [
+        i for i, n in enumerate(view_names) if (depth_error[n] <= tol if n in depth_error else renderer_ok)
+    ]
 
 
 # -- inputs --------------------------------------------------------------------------------------
@@ -697,12 +736,8 @@ def reduce_views(
                 og = obs[g]
                 has_x = np.isfinite(og["X"]).all(1)
                 if dp == "trusted":
-                    errs = stats["aerial_rejected"]["depth_error"]
-                    trusted = [
-                        i
-                        for i, n in enumerate(view_names)
-                        if errs.get(n, np.inf) <= conf["pnp"]["depth_trust"]
-                    ]
+                    errors = stats["aerial_rejected"]["depth_error"]
+                    trusted = trusted_depth_views(view_names, errors, conf["pnp"])
                     has_x &= np.isin(og["view"], trusted)
                 ig = np.concatenate([ig, og["i"][has_x]])
                 X = np.concatenate([X, og["X"][has_x]])

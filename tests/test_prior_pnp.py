@@ -1,0 +1,86 @@
+"""PnP whose hypotheses must agree with the POS (services.prior_pnp) and the reducer's use of it: a
+ground image whose true pose is outvoted by a repeated facade is still localized, at the true pose."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from services import transfer
+from services.colmap_model import Camera
+from services.prior_pnp import prior_gated_pnp, reprojection_errors
+from services.viewpoints import look_at
+
+CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
+TRUE = look_at(np.array([0.0, 0.0, 1.6]), np.array([0.0, 20.0, 4.0]))
+WRONG = look_at(np.array([40.0, 5.0, 1.6]), np.array([40.0, 25.0, 4.0]))  # 40 m along the street
+STD = (2.5, 4.0, 2.0)
+
+
+def _correspondences(seed: int = 0, n_true: int = 40, n_wrong: int = 90):
+    """n_true keypoints spread over the image with their true points, and n_wrong keypoints whose
+    points fit WRONG (a facade 40 m further that looks the same): the most inliers belong to WRONG."""
+    rng = np.random.default_rng(seed)
+
+    def pts(pose, n):
+        kp = np.stack([rng.uniform(40, 984, n), rng.uniform(40, 728, n)], 1)
+        return kp, pose.unproject(CAM.K, kp, rng.uniform(8.0, 35.0, n))
+
+    kp_t, X_t = pts(TRUE, n_true)
+    kp_w, X_w = pts(WRONG, n_wrong)
+    kp = np.concatenate([kp_t, kp_w]) + rng.normal(0, 0.3, (n_true + n_wrong, 2))
+    return kp, np.concatenate([X_t, X_w]), n_true
+
+
+def test_gated_ransac_finds_the_pose_the_prior_allows():
+    kp, X, n_true = _correspondences()
+    pc = transfer.default_conf["pnp"]
+
+    def gate(p):
+        return not transfer.prior_agreement(p, TRUE, STD, pc)[2]
+
+    pose, inl = prior_gated_pnp(kp, X, CAM.K, gate, threshold_px=6.0)
+    assert pose is not None
+    assert np.linalg.norm(pose.center - TRUE.center) < 0.1
+    assert inl[:n_true].all() and not inl[n_true:].any()
+    assert np.median(reprojection_errors(pose, CAM.K, kp[:n_true], X[:n_true])) < 1.0
+    # deterministic for a seed
+    pose2, inl2 = prior_gated_pnp(kp, X, CAM.K, gate, threshold_px=6.0)
+    assert np.array_equal(inl, inl2) and np.allclose(pose.t, pose2.t)
+    # nothing the gate allows: no pose
+    assert prior_gated_pnp(kp, X, CAM.K, lambda p: False)[0] is None
+    assert prior_gated_pnp(kp[:3], X[:3], CAM.K, gate)[0] is None
+
+
+def test_reducer_pnp_falls_back_to_the_gated_ransac():
+    kp, X, n_true = _correspondences(seed=1)
+    r = transfer.estimate_ground_pose(kp, X, CAM, TRUE, STD, transfer.default_conf)
+    assert r["accepted"], r["reason"]
+    assert r["solver"] == "prior-gated"
+    assert np.linalg.norm(np.asarray(r["center"]) - TRUE.center) < 0.1
+    assert r["num_inliers"] == n_true
+    # without the gated RANSAC the most-inliers pose (the wrong facade) is found and rejected by the POS
+    conf = copy.deepcopy(transfer.default_conf)
+    conf["pnp"]["prior_gated"] = False
+    plain = transfer.estimate_ground_pose(kp, X, CAM, TRUE, STD, conf)
+    assert not plain["accepted"] and "from the POS" in plain["reason"]
+    assert plain["solver"] == "pycolmap"
+
+
+def test_a_pose_that_agrees_with_the_pos_keeps_the_plain_ransac():
+    kp, X, n_true = _correspondences(seed=2, n_wrong=10)
+    r = transfer.estimate_ground_pose(kp, X, CAM, TRUE, STD, transfer.default_conf)
+    assert r["accepted"] and r["solver"] == "pycolmap"
+
+
+def test_depth_is_trusted_per_view_or_by_the_renderer():
+    pc = {"depth_trust": 0.01, "min_trust_views": 3}
+    names = ["a", "b", "c", "d", "low"]
+    sharp = {"a": 0.002, "b": 0.004, "c": 0.003, "d": 0.05}
+    # measured views by their own error; "low" (no aerial points to measure) by the renderer's median
+    assert transfer.trusted_depth_views(names, sharp, pc) == [0, 1, 2, 4]
+    blurry = {"a": 0.04, "b": 0.006, "c": 0.05, "d": 0.03}
+    assert transfer.trusted_depth_views(names, blurry, pc) == [1]
+    # too few measured views to judge the renderer
+    assert transfer.trusted_depth_views(names, {"a": 0.001, "b": 0.002}, pc) == [0, 1]
