@@ -391,3 +391,30 @@ def test_deleting_a_project_removes_its_children(session: Session) -> None:
     session.execute(sa.text("DELETE FROM tenants WHERE id = :id"), {"id": keep.tenant_id})
     assert _count(session, Project, tenant_id=keep.tenant_id) == 0
     assert _count(session, Image, project_id=keep.id) == 0
+
+
+def test_a_write_after_a_stale_read_waits_for_the_lock(engine: sa.Engine) -> None:
+    """The API reads a job, the worker commits progress, the API cancels the job (the embedded service
+    on SQLite: a deferred transaction that has read could not take the write lock and failed with
+    "database is locked" at once). The cancel is written, and so is the worker's progress."""
+    make = make_sessionmaker(engine)
+    with make() as s:
+        job_id = crud.create_job(s, _project(s).id).id
+        crud.set_job_status(s, job_id, JobStatus.running)
+        s.commit()
+    with make() as api, make() as worker:
+        assert api.get(Job, job_id).status == JobStatus.running  # the API's transaction has read
+        crud.update_job_progress(worker, worker.get(Job, job_id), 0.5)
+        worker.commit()  # ... and the worker has committed since
+        crud.set_job_status(api, job_id, JobStatus.cancelled)
+        api.commit()
+    with make() as s:
+        job = s.get(Job, job_id)
+        assert job.status == JobStatus.cancelled and job.progress == 0.5
+        # a transaction that has written already is not committed early: its work rolls back as one
+        crud.update_job_results(s, job, metrics={"ncm": 1})
+        s.flush()
+        crud.rerun_job(s, job_id)
+        s.rollback()
+        job = s.get(Job, job_id)
+        assert job.status == JobStatus.cancelled and job.metrics != {"ncm": 1}

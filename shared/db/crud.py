@@ -32,6 +32,7 @@ from shared.db.models import (
     Upload,
     utcnow,
 )
+from shared.db.session import begin_write
 from shared.storage.keys import InvalidKeyError, split_image_name
 
 API_KEY_PREFIX = "mv_"
@@ -395,6 +396,7 @@ def _job(session: Session, job: Job | str) -> Job:
     """A Job as given, or loaded by id with its row locked (FOR UPDATE on PostgreSQL)."""
     if isinstance(job, Job):
         return job
+    begin_write(session)  # SQLite: take the write lock before reading what will be written
     found = session.get(Job, str(job), with_for_update=True, populate_existing=True)
     if found is None:
         raise NotFoundError(f"job {job} not found")

@@ -56,6 +56,34 @@ def make_engine(url: str, **kwargs: Any) -> sa.Engine:
     return engine
 
 
+def begin_write(session: Session) -> None:
+    """Before a session's first write on SQLite, make its transaction a writing one (BEGIN IMMEDIATE).
+
+    A deferred SQLite transaction that has read cannot take the write lock once another connection has
+    committed since (WAL snapshot): SQLite answers "database is locked" at once, busy_timeout does not
+    help (the embedded worker commits progress while the API cancels a job). A transaction that has not
+    flushed anything yet is committed (it only read) and begun again with BEGIN IMMEDIATE, which waits
+    on busy_timeout for the lock; the caller reloads what it writes. Nothing to do on PostgreSQL (rows
+    are locked FOR UPDATE) or when the transaction has written already (it holds the lock)."""
+    if session.get_bind().dialect.name != "sqlite":
+        return
+    tx = session.get_transaction()
+    if tx is not None and session.info.get("wrote_in") is tx:
+        return
+    if session.new or session.dirty or session.deleted:
+        session.flush()  # pending writes take the lock now (or fail here, before anything is lost)
+        return
+    if tx is not None:
+        session.commit()
+    session.connection(execution_options={"sqlite_immediate": True})
+    session.info["wrote_in"] = session.get_transaction()
+
+
+@sa.event.listens_for(Session, "after_flush")
+def _mark_writing(session: Session, _ctx: Any) -> None:
+    session.info["wrote_in"] = session.get_transaction()
+
+
 @lru_cache(maxsize=8)
 def get_engine(url: str | None = None) -> sa.Engine:
     """The process-wide engine of a URL (default: settings.database_url)."""
