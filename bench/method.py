@@ -3,7 +3,8 @@
     python bench/method.py [--preset small] [--seed 0] [--renderers gt,splat]
                            [--planners paper,ground-aware,both] [--views 2] [--max-keypoints 1024]
                            [--matchers aliked-lightglue,sift] [--sift-keypoints 8192]
-                           [--splat-steps 1500] [--adopt-sfm DIR] [--adopt-splat DIR] [--out DIR]
+                           [--splat-steps 1500] [--splat-set KEY=VALUE]
+                           [--adopt-sfm DIR] [--adopt-splat DIR] [--out DIR]
 
 One aerial SfM (and one 3DGS model) is shared by every configuration: a base job runs aerial_sfm and
 train_splat, and one job per (renderer, planner) links to it and runs plan_views .. combined_sfm (the
@@ -181,6 +182,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sift-keypoints", type=int, default=8192, help="SIFT features per image (matcher sift)")
     ap.add_argument("--splat-steps", type=int, default=1500)
     ap.add_argument("--splat-max-width", type=int, default=400)
+    ap.add_argument(
+        "--splat-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="3DGS conf entry (services.splat confs), repeatable: --splat-set depth_lambda=0.05",
+    )
     ap.add_argument("--torch-threads", type=int, default=1)
     ap.add_argument("--no-sfm", action="store_true", help="skip the combined reconstructions")
     ap.add_argument("--adopt-sfm", type=Path, help="an aerial SfM output folder to use instead of running it")
@@ -212,7 +220,11 @@ def main(argv: list[str] | None = None) -> int:
         "seed": args.seed,
     }
     # the aerial SfM of services.sfm.confs["sift-fast"] (SIFT at 1024 px, exhaustive matching)
+    from services.splat import confs as splat_confs
+    from services.splat.train import parse_overrides
+
     settings = {
+        "splat": parse_overrides(args.splat_set, splat_confs["fast"]),
         "torch_threads": args.torch_threads,
         "scene": str(scene),
         "sfm": {"output": "sfm-sift-fast", "features": {"max_image_size": 1024, "max_num_features": 4096}},

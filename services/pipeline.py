@@ -434,7 +434,7 @@ def train_splat(
         "backend": trainer.backend,
         "resolution": [data.views[0].width, data.views[0].height],
         "seconds": {"train": train_s},
-        "test": {k: test[k] for k in ("psnr", "ssim", "n_views") if k in test},
+        "test": {k: test[k] for k in ("psnr", "ssim", "depth_err", "n_views") if k in test},
         "num_views": {s: sum(v.name.startswith(f"{s}/") for v in data.views) for s in ("aerial", "ground")},
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))

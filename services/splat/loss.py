@@ -1,4 +1,6 @@
-"""Photometric loss of 3DGS: (1 - lambda) L1 + lambda (1 - SSIM), lambda = 0.2; PSNR and SSIM metrics."""
+"""Losses of 3DGS: photometric, (1 - lambda) L1 + lambda (1 - SSIM), lambda = 0.2; the sparse-depth term
+(gsplat's simple_trainer `depth_loss`: rendered depth against the SfM points seen by the view); PSNR and
+SSIM metrics."""
 
 from __future__ import annotations
 
@@ -50,3 +52,24 @@ def psnr(render: torch.Tensor, target: torch.Tensor) -> float:
     """PSNR in dB of images in [0, 1] (render clamped to [0, 1])."""
     mse = float(((render.clamp(0, 1) - target) ** 2).mean())
     return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()
+
+
+def sample_depth(depth: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of a depth map (H, W) or (H, W, 1) at `pixels` (M, 2), COLMAP pixel coordinates
+    (the centre of the top-left pixel at (0.5, 0.5)) -> (M,)."""
+    d = depth.reshape(1, 1, depth.shape[0], depth.shape[1])
+    H, W = d.shape[-2:]
+    size = torch.tensor([W, H], dtype=pixels.dtype, device=pixels.device)
+    grid = (pixels / size * 2 - 1).reshape(1, -1, 1, 2).to(d)
+    return F.grid_sample(d, grid, mode="bilinear", padding_mode="border", align_corners=False).reshape(-1)
+
+
+def sparse_depth_loss(
+    depth: torch.Tensor, pixels: torch.Tensor, target: torch.Tensor, scene_scale: float
+) -> torch.Tensor:
+    """L1 in disparity between the rendered expected depth (H, W[, 1]) at `pixels` (M, 2) and the depths
+    `target` (M,) of the SfM points there, times `scene_scale` (a relative depth error at the scene's
+    distance), as gsplat's simple_trainer does. Pixels where nothing was rendered count as disparity 0."""
+    d = sample_depth(depth, pixels)
+    disp = torch.where(d > 0, 1.0 / d.clamp_min(1e-6), torch.zeros_like(d))
+    return (disp - 1.0 / target).abs().mean() * scene_scale

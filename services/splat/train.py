@@ -29,7 +29,7 @@ from services.colmap_model import Camera
 from shared.logging import stage
 
 from .backend import rasterization, resolve_backend
-from .loss import photometric_loss, psnr, ssim
+from .loss import photometric_loss, psnr, sample_depth, sparse_depth_loss, ssim
 from .model import activated, create_splats, random_points, splats_from_tensors
 from .ply import save_ply
 from .projection import viewmat_from_pose
@@ -47,6 +47,9 @@ _DEFAULT: dict[str, Any] = {
     "init_scale": 1.0,
     "init_random": 0,  # random Gaussians added in the cameras' bounding box (all of them without points)
     "ssim_lambda": 0.2,
+    # weight of the sparse-depth loss (loss.sparse_depth_loss against the SfM points each view sees;
+    # gsplat's simple_trainer uses 1e-2); 0: off
+    "depth_lambda": 0.0,
     "lr": {
         "means": 1.6e-4,  # times the scene extent, decays exponentially to means_final
         "means_final": 1.6e-6,
@@ -206,6 +209,8 @@ class View:
     width: int
     height: int
     image: torch.Tensor | None = None
+    depth_pixels: torch.Tensor | None = None  # (M, 2) where the SfM points this image sees project
+    depth_targets: torch.Tensor | None = None  # (M,) their z-depth in this camera
 
 
 @dataclass
@@ -264,6 +269,9 @@ def load_scene(
         K, w, h = scaled_camera(c.K, c.width, c.height, max_width)
         m = img.cam_from_world().matrix()
         v = View(img.name, torch.tensor(K, dtype=torch.float32), viewmat_from_pose(m[:, :3], m[:, 3]), w, h)
+        ids = [p.point3D_id for p in img.points2D if p.has_point3D()]
+        xyz = np.array([rec.points3D[i].xyz for i in ids], float).reshape(-1, 3)
+        v.depth_pixels, v.depth_targets = sparse_depth(xyz, K, m, w, h)
         if images is not None:
             v.image = load_image(Path(images) / img.name, w, h)
         views.append(v)
@@ -274,6 +282,18 @@ def load_scene(
     points = np.array(pts, float).reshape(-1, 3)
     colors = np.array(cols, float).reshape(-1, 3)
     return SceneData.from_views(views, points, colors, test_every)
+
+
+def sparse_depth(
+    xyz: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, width: int, height: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixels (M, 2) and z-depths (M,) of the points `xyz` (N, 3) in front of the camera and inside the
+    image (float32 tensors)."""
+    pc = xyz @ cam_from_world[:, :3].T + cam_from_world[:, 3]
+    z = pc[:, 2]
+    uv = (pc @ np.asarray(K, float).T)[:, :2] / np.where(z > 0, z, 1.0)[:, None]
+    keep = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+    return torch.tensor(uv[keep], dtype=torch.float32), torch.tensor(z[keep], dtype=torch.float32)
 
 
 def camera_centers(views: list[View]) -> np.ndarray:
@@ -389,9 +409,12 @@ class Trainer:
         self.history = list(ck.get("history", []))
 
     # ---- rendering
-    def render_view(self, v: View, sh_degree: int | None = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    def render_view(
+        self, v: View, sh_degree: int | None = None, depth: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """colors (H, W, 3), or (H, W, 4) with the expected depth last when `depth`; alphas; info."""
         p = activated(self.splats)
-        bg = torch.tensor(self.conf["background"], dtype=torch.float32, device=self.device)
+        bg = torch.tensor(self.conf["background"] + [0.0] * depth, dtype=torch.float32, device=self.device)
         return rasterization(
             p["means"],
             p["quats"],
@@ -404,6 +427,7 @@ class Trainer:
             v.height,
             sh_degree=self.conf["sh_degree"] if sh_degree is None else sh_degree,
             backgrounds=bg,
+            render_mode="RGB+ED" if depth else "RGB",
             backend=self.backend,
         )
 
@@ -443,9 +467,17 @@ class Trainer:
             if v.name not in imgs:
                 imgs[v.name] = v.image.to(self.device)
             self.optimizers["means"].param_groups[0]["lr"] = self.means_lr(step)
-            colors, _, info = self.render_view(v, self.sh_degree_at(step))
+            use_depth = c["depth_lambda"] > 0 and v.depth_targets is not None and len(v.depth_targets) > 0
+            colors, _, info = self.render_view(v, self.sh_degree_at(step), depth=use_depth)
             self.strategy.step_pre_backward(self.splats, self.optimizers, self.strategy_state, step, info)
+            if use_depth:
+                colors, depth = colors[..., :3], colors[..., 3]
             loss, terms = photometric_loss(colors, imgs[v.name], c["ssim_lambda"])
+            if use_depth:
+                dl = sparse_depth_loss(
+                    depth, v.depth_pixels.to(self.device), v.depth_targets.to(self.device), self.extent
+                )
+                loss = loss + c["depth_lambda"] * dl
             loss.backward()
             for o in self.optimizers.values():
                 o.step()
@@ -489,18 +521,20 @@ class Trainer:
     # ---- evaluation and export
     @torch.no_grad()
     def evaluate(self, ids: list[int] | None = None, save_dir: Path | None = None) -> dict:
-        """PSNR / SSIM / L1 of the views `ids` (default: the held-out ones)."""
+        """PSNR / SSIM / L1 of the views `ids` (default: the held-out ones), and the median relative error
+        of the rendered depth at the SfM points each view sees (depth_err; NaN without points)."""
         ids = self.data.test_ids if ids is None else ids
         per = {}
         for i in ids:
             v = self.data.views[i]
-            out, _, _ = self.render_view(v)
-            out = out.clamp(0, 1).cpu()
+            out, _, _ = self.render_view(v, depth=True)
+            out, depth = out[..., :3].clamp(0, 1).cpu(), out[..., 3].cpu()
             gt = v.image
             per[v.name] = {
                 "psnr": psnr(out, gt),
                 "ssim": float(ssim(out, gt)),
                 "l1": float((out - gt).abs().mean()),
+                "depth_err": depth_error(depth, v),
             }
             if save_dir is not None:
                 save_dir.mkdir(parents=True, exist_ok=True)
@@ -510,10 +544,20 @@ class Trainer:
             k: float(np.mean([p[k] for p in per.values()])) if per else float("nan")
             for k in ("psnr", "ssim", "l1")
         }
+        errs = [p["depth_err"] for p in per.values() if np.isfinite(p["depth_err"])]
+        mean["depth_err"] = float(np.median(errs)) if errs else float("nan")
         return {**mean, "n_views": len(per), "views": per}
 
     def export(self) -> Path:
         return save_ply(self.splats, self.out / "point_cloud.ply")
+
+
+def depth_error(depth: torch.Tensor, v: View) -> float:
+    """Median |rendered - SfM| / SfM depth at the SfM points of view `v` (NaN when it has none)."""
+    if v.depth_targets is None or len(v.depth_targets) == 0:
+        return float("nan")
+    d = sample_depth(depth, v.depth_pixels)
+    return float(((d - v.depth_targets).abs() / v.depth_targets).median())
 
 
 def write_views(views: list[View], path: Path) -> Path:
@@ -582,13 +626,15 @@ def main(
                 "eval": time.perf_counter() - t1,
             },
             "test": test,
-            "train_subset": {k: train_eval[k] for k in ("psnr", "ssim", "l1", "n_views")},
+            "train_subset": {k: train_eval[k] for k in ("psnr", "ssim", "l1", "depth_err", "n_views")},
         }
         (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
         log.info(
-            "test PSNR %.2f dB, SSIM %.3f on %d views; %d Gaussians",
+            "test PSNR %.2f dB, SSIM %.3f, depth error %.1f%% (median, at the SfM points) on %d views; "
+            "%d Gaussians",
             test["psnr"],
             test["ssim"],
+            100 * test["depth_err"],
             test["n_views"],
             metrics["num_gaussians"],
         )
