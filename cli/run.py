@@ -234,12 +234,18 @@ def baseline_reconstruction(job, label: str, match_file: Path, match_conf: dict,
     )
 
 
-def direct_baselines(job, scene: Path, out_dir: Path, sift_conf: dict | None = None) -> dict[str, tuple]:
-    """Direct SIFT and ALIKED+LightGlue on the POS pairs; ALIKED reuses the job's feature cache.
-    Returns {label: (match file, matching conf)}."""
+def direct_baselines(
+    scene: Path,
+    out_dir: Path,
+    aliked_features: dict,
+    sift_conf: dict | None = None,
+    reuse_features: Path | None = None,
+) -> dict[str, tuple]:
+    """Direct SIFT and ALIKED+LightGlue (features `aliked_features`, midview's) on the POS pairs.
+    `reuse_features`: a feature file of that conf (the job's cache) to start from. Returns {label: (match
+    file, matching conf)}."""
     from services import pairs as pairs_mod
     from services.matching import direct
-    from services.matching.views import feature_conf
     from shared.images import list_images
 
     names = list_images(scene / "images")
@@ -253,15 +259,72 @@ def direct_baselines(job, scene: Path, out_dir: Path, sift_conf: dict | None = N
     alg = {
         **direct.confs["aliked-lightglue"],
         "name": "direct-aliked-lightglue",
-        "features": feature_conf(job.match_conf()),
+        "features": aliked_features,
     }
     # a copy of the job's feature cache: its features are reused, the job's cache stays as it was
     cache = out_dir / "features"
     cache.mkdir(parents=True, exist_ok=True)
-    if job.features_path.exists() and not (cache / job.features_path.name).exists():
-        shutil.copy2(job.features_path, cache / job.features_path.name)
+    if reuse_features is not None and reuse_features.exists() and not (cache / reuse_features.name).exists():
+        shutil.copy2(reuse_features, cache / reuse_features.name)
     out["direct ALIKED+LightGlue"] = (direct.main(alg, scene, pairs, out_dir / "direct-alg.h5", cache), alg)
     return out
+
+
+def _baselines_process(scene: str, out_dir: str, aliked_features: dict, sift_conf: dict) -> None:
+    """direct_baselines in a child process beside the pipeline: one torch thread, its output (logs,
+    progress bars, COLMAP's) in OUT_DIR/baselines.log, its result in OUT_DIR/baselines.json."""
+    import os
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    log_fd = os.open(out / "baselines.log", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    os.dup2(log_fd, 1)
+    os.dup2(log_fd, 2)
+    from shared.logging import setup_logging
+
+    setup_logging("INFO")
+    import torch
+
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    found = direct_baselines(Path(scene), out, aliked_features, sift_conf)
+    result = {"found": {k: [str(p), c] for k, (p, c) in found.items()}, "seconds": time.perf_counter() - t0}
+    (out / "baselines.json").write_text(json.dumps(result))
+
+
+class BaselinesBeside:
+    """The direct baselines in a spawned child process (no forked torch or numba state) while the pipeline
+    runs: on 2 cores the pipeline leaves about half a core idle (single-threaded torch matching, the
+    incremental mapper). `wait()` for the result; `stop()` kills the child if it still runs (SIGKILL:
+    COLMAP's signal handler can deadlock on SIGTERM)."""
+
+    def __init__(self, scene: Path, out_dir: Path, aliked_features: dict, sift_conf: dict):
+        import multiprocessing
+
+        self.out_dir = Path(out_dir)
+        self.log = self.out_dir / "baselines.log"
+        (self.out_dir / "baselines.json").unlink(missing_ok=True)
+        self.proc = multiprocessing.get_context("spawn").Process(
+            target=_baselines_process, args=(str(scene), str(out_dir), aliked_features, sift_conf)
+        )
+        self.proc.start()
+
+    def wait(self, timeout: float | None = None) -> tuple[dict[str, tuple], float]:
+        """{label: (match file, matching conf)} as direct_baselines returns, and the child's seconds."""
+        self.proc.join(timeout)
+        if self.proc.is_alive():
+            raise TimeoutError(f"the direct baselines still run after {timeout} s (log: {self.log})")
+        result = self.out_dir / "baselines.json"
+        if self.proc.exitcode != 0 or not result.exists():
+            code = self.proc.exitcode
+            raise RuntimeError(f"the direct baselines failed (exit code {code}); see {self.log}")
+        r = json.loads(result.read_text())
+        return {k: (Path(p), c) for k, (p, c) in r["found"].items()}, float(r["seconds"])
+
+    def stop(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join()
 
 
 def demo(
@@ -279,6 +342,9 @@ def demo(
     supersample: int = typer.Option(1, help="synthesis supersampling (the preset's is 2: slower, smoother)"),
     baselines: bool = typer.Option(True, help="also run the direct baselines"),
     baseline_sfm: bool = typer.Option(True, help="reconstruct with the baselines' matches too (their NRI)"),
+    beside: bool = typer.Option(
+        True, help="match the baselines in a second process beside the pipeline (else after it)"
+    ),
 ) -> None:
     """Synthesize a survey, run midview and the direct baselines on it, print one table (NIM, NCM,
     GT-correct, precision, NMP, NRI of ground images) and write OUT/report.html with match pictures."""
@@ -286,6 +352,7 @@ def demo(
 
     from services import pipeline, synth
     from services.evaluation import evaluate_matches, evaluate_sfm
+    from services.matching.views import feature_conf
 
     console = Console(width=None if sys.stdout.isatty() else 150)
     t_start = time.perf_counter()
@@ -319,30 +386,44 @@ def demo(
         options=options,
         settings=settings,
     )
-    t0 = time.perf_counter()
-    results = run_job(job)
-    timings["pipeline"] = time.perf_counter() - t0
-    for s, r in results.items():
-        timings[s] = float(r.get("seconds", 0.0))
+    aliked = feature_conf(job.match_conf())
+    sift = {"features": _demo_sift_conf()}
+    child = None
+    if baselines and beside:
+        child = BaselinesBeside(scene, out / "baselines", aliked, sift)
+        console.print(f"direct baselines beside the pipeline (log: {child.log})")
     files: dict[str, Path] = {}
     sfm_evals: dict[str, dict] = {}
-    if baselines:
+    found: dict[str, tuple] = {}
+    try:
         t0 = time.perf_counter()
-        with console.status("direct baselines"):
-            pipeline._set_threads(job)
-            found = direct_baselines(job, scene, out / "baselines", {"features": _demo_sift_conf()})
-        files.update({k: v[0] for k, v in found.items()})
-        timings["baselines"] = time.perf_counter() - t0
-        if baseline_sfm:
+        results = run_job(job)
+        timings["pipeline"] = time.perf_counter() - t0
+        for s, r in results.items():
+            timings[s] = float(r.get("seconds", 0.0))
+        if baselines:
             t0 = time.perf_counter()
-            for label, (path, conf) in found.items():
-                with console.status(f"reconstruction with the {label} matches"):
-                    try:
-                        model = baseline_reconstruction(job, label, path, conf, out / "baselines")
-                        sfm_evals[label] = evaluate_sfm(scene, model, out / "eval" / f"{path.stem}-combined")
-                    except Exception as e:  # a baseline that cannot reconstruct reports no NRI
-                        logger.warning("no reconstruction with the %s matches: %s", label, e)
-            timings["baselines_sfm"] = time.perf_counter() - t0
+            with console.status("direct baselines"):
+                if child is not None:
+                    found, timings["baselines_process"] = child.wait()
+                else:
+                    pipeline._set_threads(job)
+                    found = direct_baselines(scene, out / "baselines", aliked, sift, job.features_path)
+            timings["baselines"] = time.perf_counter() - t0  # after the pipeline
+    finally:
+        if child is not None:  # done, or the pipeline failed: stop the child either way
+            child.stop()
+    files.update({k: v[0] for k, v in found.items()})
+    if baseline_sfm and found:
+        t0 = time.perf_counter()
+        for label, (path, conf) in found.items():
+            with console.status(f"reconstruction with the {label} matches"):
+                try:
+                    model = baseline_reconstruction(job, label, path, conf, out / "baselines")
+                    sfm_evals[label] = evaluate_sfm(scene, model, out / "eval" / f"{path.stem}-combined")
+                except Exception as e:  # a baseline that cannot reconstruct reports no NRI
+                    logger.warning("no reconstruction with the %s matches: %s", label, e)
+        timings["baselines_sfm"] = time.perf_counter() - t0
     files["midview"] = job.dir("transfer") / "matches.h5"
     t0 = time.perf_counter()
     rows = []

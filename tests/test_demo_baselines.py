@@ -1,0 +1,56 @@
+"""`midview demo`'s direct baselines in a child process beside the pipeline: the same match files as
+in-process, a log of their own, and a child that stops when the demo does."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from cli.run import BaselinesBeside, direct_baselines
+from services.matching.views import feature_conf
+from shared.matchfile import MatchFile
+
+ALIKED = feature_conf({"features": "aliked", "max_keypoints": 256, "resize_max": 320})
+SIFT = {"features": {**feature_conf({"features": "sift", "max_keypoints": 512, "resize_max": 320})}}
+
+
+def _pairs(path):
+    with MatchFile(path) as mf:
+        return {(pm.name0, pm.name1): pm.matches[pm.inliers] for pm in mf.iter_pairs()}
+
+
+def test_baselines_beside_match_what_in_process_does(tiny_scene, tmp_path):
+    child = BaselinesBeside(tiny_scene, tmp_path / "beside", ALIKED, SIFT)
+    try:
+        found, seconds = child.wait(timeout=600)
+    finally:
+        child.stop()
+    assert set(found) == {"direct SIFT", "direct ALIKED+LightGlue"} and seconds > 0
+    log = child.log.read_text()
+    assert "direct-alg.h5" in log and "match direct-sift" in log  # its log and its progress bars
+    here = direct_baselines(tiny_scene, tmp_path / "here", ALIKED, SIFT)
+    total = 0
+    for label, (path, _) in found.items():
+        a, b = _pairs(path), _pairs(here[label][0])
+        assert a.keys() == b.keys() and a
+        assert all(np.array_equal(a[k], b[k]) for k in a)
+        total += sum(len(m) for m in a.values())
+    assert total > 0
+
+
+def test_a_failed_demo_stops_the_baselines(tiny_scene, tmp_path):
+    child = BaselinesBeside(tiny_scene, tmp_path, ALIKED, SIFT)
+    time.sleep(3.0)
+    t0 = time.perf_counter()
+    child.stop()
+    assert time.perf_counter() - t0 < 30 and not child.proc.is_alive()
+    assert not (tmp_path / "baselines.json").exists()
+
+
+def test_a_failing_child_says_where_its_log_is(tmp_path):
+    child = BaselinesBeside(tmp_path / "no-scene", tmp_path / "out", ALIKED, SIFT)
+    with pytest.raises(RuntimeError, match="baselines.log"):
+        child.wait(timeout=120)
+    assert "Traceback" in child.log.read_text()
