@@ -48,8 +48,11 @@ _DEFAULT: dict[str, Any] = {
     "init_random": 0,  # random Gaussians added in the cameras' bounding box (all of them without points)
     "ssim_lambda": 0.2,
     # weight of the sparse-depth loss (loss.sparse_depth_loss against the SfM points each view sees;
-    # gsplat's simple_trainer uses 1e-2); 0: off
-    "depth_lambda": 0.0,
+    # gsplat's simple_trainer uses 1e-2; 0: off). On `small` (CPU, 1500 steps at 400 px) 0.1 took the
+    # median depth error at the held-out views' SfM points from 3.8% to 0.8% and in the low views from 9.9%
+    # to 4.7%, midview's GT-correct matches from 593 to 637 and their pooled precision from 0.935 to 0.949
+    # (0.5: 0.3%, 3.7%, 649 at 0.918); held-out PSNR within 0.2 dB
+    "depth_lambda": 0.1,
     "lr": {
         "means": 1.6e-4,  # times the scene extent, decays exponentially to means_final
         "means_final": 1.6e-6,
