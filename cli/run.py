@@ -286,7 +286,18 @@ def _baselines_process(scene: str, out_dir: str, aliked_features: dict, sift_con
     import torch
 
     torch.set_num_threads(1)
+    from services import features as features_mod
+    from shared.images import list_images
+
     t0 = time.perf_counter()
+    # midview's features first: the demo hands them to the job (BaselinesBeside.share_features)
+    features_mod.main(
+        aliked_features,
+        Path(scene) / "images",
+        list_images(Path(scene) / "images"),
+        out / "features" / f"{aliked_features['output']}.h5",
+    )
+    (out / "features" / "shared.done").touch()
     found = direct_baselines(Path(scene), out, aliked_features, sift_conf)
     result = {"found": {k: [str(p), c] for k, (p, c) in found.items()}, "seconds": time.perf_counter() - t0}
     (out / "baselines.json").write_text(json.dumps(result))
@@ -296,14 +307,17 @@ class BaselinesBeside:
     """The direct baselines in a spawned child process (no forked torch or numba state) while the pipeline
     runs: on 2 cores the pipeline leaves about half a core idle (single-threaded torch matching, the
     incremental mapper). `wait()` for the result; `stop()` kills the child if it still runs (SIGKILL:
-    COLMAP's signal handler can deadlock on SIGTERM)."""
+    COLMAP's signal handler can deadlock on SIGTERM). The child extracts midview's features (ALIKED, the
+    job's conf) first, which `share_features` hands to the job."""
 
     def __init__(self, scene: Path, out_dir: Path, aliked_features: dict, sift_conf: dict):
         import multiprocessing
 
         self.out_dir = Path(out_dir)
         self.log = self.out_dir / "baselines.log"
+        self.features = self.out_dir / "features" / f"{aliked_features['output']}.h5"
         (self.out_dir / "baselines.json").unlink(missing_ok=True)
+        (self.out_dir / "features" / "shared.done").unlink(missing_ok=True)
         self.proc = multiprocessing.get_context("spawn").Process(
             target=_baselines_process, args=(str(scene), str(out_dir), aliked_features, sift_conf)
         )
@@ -320,6 +334,17 @@ class BaselinesBeside:
             raise RuntimeError(f"the direct baselines failed (exit code {code}); see {self.log}")
         r = json.loads(result.read_text())
         return {k: (Path(p), c) for k, (p, c) in r["found"].items()}, float(r["seconds"])
+
+    def share_features(self, dst: Path) -> bool:
+        """Copy the child's ALIKED features to `dst` (the job's feature cache) if it has finished them and
+        `dst` does not exist; the job extracts whatever they lack. True if copied."""
+        if dst.exists() or not (self.out_dir / "features" / "shared.done").exists():
+            return False
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dst.with_suffix(".part")
+        shutil.copy2(self.features, tmp)
+        tmp.replace(dst)
+        return True
 
     def stop(self) -> None:
         if self.proc.is_alive():
@@ -397,7 +422,13 @@ def demo(
     found: dict[str, tuple] = {}
     try:
         t0 = time.perf_counter()
-        results = run_job(job)
+        todo = list(job.options.stages)
+        cut = todo.index("match_views") if child is not None and "match_views" in todo else len(todo)
+        results = run_job(job, stages=todo[:cut])
+        if cut < len(todo):
+            if child.share_features(job.features_path):
+                console.print("midview's features: taken from the baselines' process")
+            results.update(run_job(job, stages=todo[cut:]))
         timings["pipeline"] = time.perf_counter() - t0
         for s, r in results.items():
             timings[s] = float(r.get("seconds", 0.0))

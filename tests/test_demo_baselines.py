@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from cli.run import BaselinesBeside, direct_baselines
+from services import features as features_mod
 from services.matching.views import feature_conf
+from shared.images import list_images
 from shared.matchfile import MatchFile
 
 ALIKED = feature_conf({"features": "aliked", "max_keypoints": 256, "resize_max": 320})
@@ -30,6 +32,12 @@ def test_baselines_beside_match_what_in_process_does(tiny_scene, tmp_path):
     assert set(found) == {"direct SIFT", "direct ALIKED+LightGlue"} and seconds > 0
     log = child.log.read_text()
     assert "direct-alg.h5" in log and "match direct-sift" in log  # its log and its progress bars
+    # midview's features, handed to the job: every image of the survey, not extracted again
+    dst = tmp_path / "job" / "features" / child.features.name
+    assert child.share_features(dst) and not child.share_features(dst)
+    names = list_images(tiny_scene / "images")
+    features_mod.main(ALIKED, tiny_scene / "images", names, dst)
+    assert dst.stat().st_mtime_ns == child.features.stat().st_mtime_ns  # all cached: left untouched
     here = direct_baselines(tiny_scene, tmp_path / "here", ALIKED, SIFT)
     total = 0
     for label, (path, _) in found.items():
