@@ -25,7 +25,7 @@ import numpy as np
 import pycolmap
 import torch
 
-from services.colmap_model import Camera
+from services.colmap_model import Camera, Pose
 from shared.logging import stage
 
 from .backend import rasterization, resolve_backend
@@ -292,9 +292,7 @@ def sparse_depth(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixels (M, 2) and z-depths (M,) of the points `xyz` (N, 3) in front of the camera and inside the
     image (float32 tensors)."""
-    pc = xyz @ cam_from_world[:, :3].T + cam_from_world[:, 3]
-    z = pc[:, 2]
-    uv = (pc @ np.asarray(K, float).T)[:, :2] / np.where(z > 0, z, 1.0)[:, None]
+    uv, z = Pose(cam_from_world[:, :3], cam_from_world[:, 3]).project(np.asarray(K, float), xyz)
     keep = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
     return torch.tensor(uv[keep], dtype=torch.float32), torch.tensor(z[keep], dtype=torch.float32)
 
