@@ -354,7 +354,7 @@ class BaselinesBeside:
 
 def demo(
     out: Path = typer.Argument(Path("runs/demo"), help="output folder (scene/, job/, report.html)"),
-    preset: str = typer.Option("small", help="synthetic preset: tiny, small"),
+    preset: str = typer.Option("small", help="synthetic preset: tiny, small, small-walk"),
     seed: int = typer.Option(0, help="random seed of the scene and the job"),
     textures: Path | None = typer.Option(
         None, help=f"facade photos (default: {DEFAULT_TEXTURES} if present)"

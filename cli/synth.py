@@ -9,7 +9,11 @@ import typer
 
 def synth(
     out: Path = typer.Argument(..., help="output scene folder (docs/formats.md, 'Synthetic scene folder')"),
-    preset: str = typer.Option("small", help="tiny (tests, seconds), small (a block, minutes) or city"),
+    preset: str = typer.Option(
+        "small",
+        help="tiny (tests, seconds), small (a block, minutes), small-walk (small with 40 ground images in"
+        " sequence, 4 m apart) or city",
+    ),
     seed: int = typer.Option(0, help="random seed: same preset and seed give identical files"),
     textures: Path | None = typer.Option(
         None,

@@ -225,3 +225,22 @@ def test_pose_helpers_agree_with_depth(tiny):
     X = pose.unproject(K, np.array([[j + 0.5, i + 0.5]]), np.array([float(d[i, j])]))
     uv, z = pose.project(K, X)
     assert np.allclose(uv, [[j + 0.5, i + 0.5]], atol=1e-6) and np.isclose(z[0], d[i, j], rtol=1e-6)
+
+
+def test_walk_layout_takes_ground_images_in_sequence():
+    """small-walk: 40 ground images 4 m apart one after the other (jumps only round a block's corner),
+    each at the same offset from the kerb give or take 0.5 m, looking at the facades or along the street."""
+    from services.synth.cameras import ground_views
+    from services.synth.scene import make_scene
+
+    conf = confs["small-walk"]
+    rng = np.random.default_rng(0)
+    scene = make_scene(conf["scene"], rng)
+    views = ground_views(conf["ground"], scene, rng)
+    assert len(views) == 40
+    steps = np.linalg.norm(np.diff(np.array([v.C[:2] for v in views]), axis=0), axis=1)
+    assert np.median(steps) == pytest.approx(4.0, abs=0.5)
+    assert (steps > 6.0).sum() <= 3  # the walk turns at most three corners of the block
+    assert {v.kind for v in views} <= {"in", "diag", "along"}
+    spread = confs["small"]["ground"]
+    assert "layout" not in spread  # the other presets keep their cameras spread round the blocks

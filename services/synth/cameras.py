@@ -84,7 +84,10 @@ def aerial_views(conf: dict, scene: Scene, rng: np.random.Generator) -> list[Vie
 
 def ground_views(conf: dict, scene: Scene, rng: np.random.Generator) -> list[View]:
     """Cameras along the kerbs of the surveyed blocks (counter-clockwise), in the driving lanes or on the
-    opposite sidewalk, looking along the street, at the block's facades, diagonally, or across."""
+    opposite sidewalk, looking along the street, at the block's facades, diagonally, or across.
+    conf["layout"]: "spread" (the default: `count` cameras spread evenly around the blocks) or "walk"
+    (a walker's sequence: `count` cameras `spacing_m` apart, one after the other, each at the same
+    offset from the kerb give or take 0.5 m)."""
     road, sidewalk = float(scene.lay[4]), float(scene.lay[7])
     sides = [s for b in scene.blocks if b["surveyed"] for s in block_sides(b)]
     lengths = np.array([s[3] for s in sides])
@@ -93,13 +96,25 @@ def ground_views(conf: dict, scene: Scene, rng: np.random.Generator) -> list[Vie
     kinds = list(conf["views"])
     probs = np.array([conf["views"][k] for k in kinds], float)
     views: list[View] = []
-    s0 = rng.uniform(0, total / n)
+    walk = conf.get("layout", "spread") == "walk"
+    if walk:
+        step = float(conf["spacing_m"])
+        s0 = rng.uniform(0, total)
+        walk_off = rng.uniform(2.7, road - 2.7) if rng.random() < conf["p_lane"] else None
+    else:
+        s0 = rng.uniform(0, total / n)
     for k in range(n):
-        s = (s0 + k * total / n + rng.uniform(-0.15, 0.15) * total / n) % total
+        if walk:
+            s = (s0 + k * step + rng.uniform(-0.1, 0.1) * step) % total
+        else:
+            s = (s0 + k * total / n + rng.uniform(-0.15, 0.15) * total / n) % total
         si = int(np.searchsorted(np.cumsum(lengths), s, side="right"))
         start, tan, nrm, length = sides[si]
         along = s - float(np.cumsum(lengths)[si] - length)
-        if rng.random() < conf["p_lane"]:
+        if walk:
+            base = walk_off if walk_off is not None else road + sidewalk / 2
+            off = base + rng.uniform(-0.5, 0.5)
+        elif rng.random() < conf["p_lane"]:
             off = rng.uniform(2.7, road - 2.7)
         else:
             off = road + rng.uniform(0.8, sidewalk - 0.8)

@@ -132,6 +132,17 @@ confs: dict[str, dict] = {
     ),
     # one block with its neighbours: 40 aerial + 15 ground images, a few minutes on 2 cores
     "small": _preset("small"),
+    # `small` walked: 40 ground images 4 m apart in sequence (a walker photographing the facades), the
+    # overlapping ground capture of a street survey; 40 aerial + 40 ground images
+    "small-walk": _preset(
+        "small-walk",
+        ground={
+            "count": 40,
+            "layout": "walk",
+            "spacing_m": 4.0,
+            "views": {"in": 0.5, "diag": 0.4, "along": 0.1},
+        },
+    ),
     # 3 x 3 surveyed blocks: ~350 aerial + 150 ground images (long; for a many-core machine)
     "city": _preset(
         "city",
