@@ -65,7 +65,8 @@ default_conf: dict[str, Any] = {
     "add_max_px": 4.0,  # such an observation must reproject within this (ground pixels)
     "add_min_angle_deg": 2.0,  # a new aerial-ground point must be seen under this angle at least
     # ground images the mapper registered itself (not at an accepted PnP pose) are dropped when their
-    # observations leave the camera centre this uncertain (services.pose_uncertainty; None: kept)
+    # observations leave the camera centre this uncertain (services.pose_uncertainty; None: kept), or
+    # when their pose disagrees with their POS (the reducer's limits)
     "max_position_std_m": 0.25,
     "mapping": {
         "min_num_matches": 15,  # pairs with fewer matches are ignored by the mapper
@@ -478,12 +479,14 @@ def main(
         else:
             logger.warning("the mapper returned no model: keeping the seeded input model")
             rec = seed
-        dropped = drop_ill_determined(rec, pnp, conf["max_position_std_m"])
+        dropped = drop_ill_determined(
+            rec, pnp, conf["max_position_std_m"], priors, prior_std, transfer_default_conf["pnp"]
+        )
         if dropped:
             logger.info(
-                "%d ground images registered by the mapper dropped, their position ill-determined: %s",
+                "%d ground images registered by the mapper dropped: %s",
                 len(dropped),
-                ", ".join(f"{g} (std {v:.2f} m)" for g, v in sorted(dropped.items())),
+                ", ".join(f"{g} ({v})" for g, v in sorted(dropped.items())),
             )
         added = add_pnp_images(rec, db_path, ids, offsets, ag, pnp, conf) if conf["add_pnp_images"] else []
         if added:
@@ -668,31 +671,44 @@ def build_input_model(
 
 
 def drop_ill_determined(
-    rec: pycolmap.Reconstruction, pnp: dict[str, dict], max_std: float | None
-) -> dict[str, float]:
+    rec: pycolmap.Reconstruction,
+    pnp: dict[str, dict],
+    max_std: float | None,
+    priors: dict[str, Pose] | None = None,
+    prior_std: dict[str, tuple[float, float, float]] | None = None,
+    pnp_conf: dict | None = None,
+) -> dict[str, str]:
     """Deregister the ground images the mapper registered (not those at an accepted PnP pose, checked by
     the reducer) whose observations determine their centre worse than `max_std` metres (standard
-    deviation along the worst direction, pixel noise their RMS residual, at least 1 px). Returns
-    {name: std}."""
+    deviation along the worst direction, pixel noise their RMS residual, at least 1 px), or, with
+    `priors` and `pnp_conf` (the reducer's POS limits, services.transfer), whose pose disagrees with
+    their POS: a repeated facade can register an image far from where it was taken. Returns
+    {name: reason}."""
     from services.pose_uncertainty import fit_position_std
+    from services.transfer import prior_agreement
 
-    if not max_std:
-        return {}
     out = {}
     for im in list(rec.images.values()):
         if not im.name.startswith("ground/") or not im.has_pose or pnp.get(im.name, {}).get("accepted"):
             continue
-        obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
         m = np.asarray(im.cam_from_world().matrix())
-        std = fit_position_std(
-            Pose(m[:, :3].copy(), m[:, 3].copy()),
-            np.asarray(im.camera.calibration_matrix()),
-            np.array([o[0] for o in obs], float).reshape(-1, 2),
-            np.array([o[1] for o in obs], float).reshape(-1, 3),
-        )
-        if std > max_std:
+        pose = Pose(m[:, :3].copy(), m[:, 3].copy())
+        reasons = []
+        if max_std:
+            obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
+            std = fit_position_std(
+                pose,
+                np.asarray(im.camera.calibration_matrix()),
+                np.array([o[0] for o in obs], float).reshape(-1, 2),
+                np.array([o[1] for o in obs], float).reshape(-1, 3),
+            )
+            if std > max_std:
+                reasons.append(f"position ill-determined (std {std:.2f} m)")
+        if priors and pnp_conf and im.name in priors:
+            reasons += prior_agreement(pose, priors[im.name], (prior_std or {}).get(im.name), pnp_conf)[2]
+        if reasons:
             rec.deregister_frame(im.frame_id)
-            out[im.name] = std
+            out[im.name] = "; ".join(reasons)
     return out
 
 
@@ -876,7 +892,7 @@ def build_report(
     timings: dict,
     t_all: float,
     added: list[str] | None = None,
-    dropped: dict[str, float] | None = None,
+    dropped: dict[str, str] | None = None,
     conf_fixed: bool = True,
 ) -> dict:
     reg = {im.name: im for im in rec.images.values() if im.has_pose}
@@ -902,9 +918,7 @@ def build_report(
             if pnp.get(g, {}).get("accepted"):
                 d["to_pnp_m"] = float(np.linalg.norm(c - np.asarray(pnp[g]["center"], float)))
         elif g in (dropped or {}):
-            d["reason"] = (
-                f"registered by the mapper, position ill-determined (std {dropped[g]:.2f} m): dropped"
-            )
+            d["reason"] = f"registered by the mapper but dropped: {dropped[g]}"
         else:
             d["reason"] = (
                 "no verified aerial-ground or ground-ground matches strong enough to register it"
