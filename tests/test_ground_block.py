@@ -175,3 +175,33 @@ def test_main_builds_the_ground_model_and_localizes_it(tmp_path):
     assert sorted(report["images"]) == sorted(true)
     for name, d in report["images"].items():
         assert np.linalg.norm(np.asarray(d["center"]) - true[name].center) < 0.15, name
+
+
+def test_mapper_registrations_far_from_their_pos_are_dropped():
+    """services.combined_sfm.drop_ill_determined: a ground image the mapper registered on well-spread
+    points is still dropped when its pose is 20 m from its POS (a repeated facade); one near it stays."""
+    from services.combined_sfm import drop_ill_determined
+
+    true = _street(2)
+    rng = np.random.default_rng(5)
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(CAM.to_pycolmap(1))
+    for i, (name, p) in enumerate(sorted(true.items()), start=1):
+        kp = np.stack([rng.uniform(50, 974, 80), rng.uniform(50, 718, 80)], 1)
+        X = p.unproject(CAM.K, kp, rng.uniform(8.0, 20.0, 80))
+        im = pycolmap.Image(name=name, keypoints=kp, camera_id=1, image_id=i)
+        rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(pycolmap.Rotation3d(p.R), p.t))
+        for k in range(len(kp)):
+            rec.add_point3D(X[k], pycolmap.Track([pycolmap.TrackElement(i, k)]), np.zeros(3, np.uint8))
+    priors = {n: Pose.from_center(p.R.T, p.center) for n, p in true.items()}
+    priors["ground/G0001.jpg"] = Pose.from_center(true["ground/G0001.jpg"].R.T, np.array([4.0, 20.0, 1.6]))
+    dropped = drop_ill_determined(rec, {}, 0.25, priors, {n: STD for n in true}, PNP_CONF)
+    assert list(dropped) == ["ground/G0001.jpg"] and "from the POS" in dropped["ground/G0001.jpg"]
+    assert rec.find_image_with_name("ground/G0000.jpg").has_pose
+    assert not rec.find_image_with_name("ground/G0001.jpg").has_pose
+    # an image at an accepted PnP pose is the reducer's to judge: kept
+    rec2 = pycolmap.Reconstruction(rec)
+    assert (
+        drop_ill_determined(rec2, {"ground/G0000.jpg": {"accepted": True}}, 0.25, priors, None, PNP_CONF)
+        == {}
+    )
