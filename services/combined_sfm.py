@@ -34,7 +34,6 @@ import numpy as np
 import pycolmap
 
 from services.colmap_model import Camera, Pose, read_cameras_json
-from services.ground_block import default_conf as block_default_conf
 from shared.logging import stage
 
 logger = logging.getLogger("midview.combined_sfm")
@@ -78,9 +77,6 @@ default_conf: dict[str, Any] = {
         "fix_aerial": True,  # the input model (aerial + PnP-seeded ground) stays fixed; BA refines the rest
         "seed": 0,
     },
-    # ground images localized together (services.ground_block): a ground-only model placed in the aerial
-    # frame by all its images' 2D-3D correspondences; its well-determined images count as accepted poses
-    "block": dict(block_default_conf),
     "georef": True,
     "colmap_log_level": 1,
 }
@@ -147,8 +143,9 @@ def _write_pair(
     calibrated: bool = False,
     cam2_from_cam1: dict | None = None,
 ) -> None:
-    """Matches and their two-view geometry (all of them inliers); `cam2_from_cam1` ({"R", "t"}, the
-    essential matrix's relative pose) lets the mapper start a model from the pair."""
+    """Matches and their two-view geometry (all of them inliers); with `cam2_from_cam1` ({"R", "t"}, the
+    essential matrix's relative pose) the geometry holds that pose and E, as COLMAP's matching stores
+    them, for whatever reads the database next."""
     m = np.ascontiguousarray(np.asarray(matches, np.uint32).reshape(-1, 2))
     if db.exists_matches(id0, id1):
         return
@@ -280,13 +277,12 @@ def main(
     ground_poses.json), `feature_path` the matching features' cache and `match_conf` the matching conf
     (services.matching.views) for the ground-ground pairs."""
     from services import features as features_mod
-    from services import ground_block
     from services.matching import direct
     from services.pos import read_pos
     from services.sfm import georef as georef_mod
     from services.sfm.aerial import colmap_log_level
     from services.transfer import default_conf as transfer_default_conf
-    from services.transfer import ground_priors, read_ground_points
+    from services.transfer import ground_priors
     from services.viewpoints import read_georef_frame
     from shared.matchfile import MatchFile
 
@@ -399,38 +395,9 @@ def main(
             len(gp),
         )
 
-    pnp = json.loads((transfer_dir / "ground_poses.json").read_text())["images"]
-    block: dict[str, Any] = {"blocks": [], "images": {}}
-    ground_pts = read_ground_points(transfer_dir / "ground_points.npz")
-    if conf["block"]["enabled"]:
-        with stage("combined:ground-block", logger):
-            t0 = time.perf_counter()
-            block = ground_block.main(
-                conf["block"],
-                db_path,
-                image_dir,
-                {n: g_feats[n]["keypoints"] for n in ground_names},
-                ground_pts,
-                cams["ground"],
-                priors,
-                prior_std,
-                transfer_default_conf["pnp"],
-                out_dir / "block",
-            )
-            placed = {}
-            for g, r in block["images"].items():
-                if not pnp.get(g, {}).get("accepted"):
-                    pnp[g] = {**r, "reducer": {k: pnp.get(g, {}).get(k) for k in ("accepted", "reason")}}
-                    placed[g] = r
-            n_block = add_block_matches(
-                db_path, ids, offsets, t_pairs, ground_pts, placed, cams["ground"], conf, pair_sizes, ag
-            )
-            block["num_matches_added"] = n_block
-            timings["ground_block"] = time.perf_counter() - t0
-            prog(0.62, f"ground blocks: {len(block['images'])} images localized")
-
     with stage("combined:input-model", logger):
         aerial = pycolmap.Reconstruction(str(aerial_dir / "sparse"))
+        pnp = json.loads((transfer_dir / "ground_poses.json").read_text())["images"]
         seed = build_input_model(aerial, db_path, ids, offsets, ag, pnp, pair_sizes, conf, out_dir / "input")
 
     with stage("combined:mapping", logger):
@@ -529,15 +496,6 @@ def main(
         conf["mapping"]["fix_aerial"],
     )
     report["ground_pairs"] = gg_records
-    report["ground_blocks"] = {
-        "blocks": [
-            {k: v for k, v in b.items() if k != "images"}
-            | {"accepted": sorted(n for n, d in b["images"].items() if d["accepted"])}
-            for b in block["blocks"]
-        ],
-        "images": block["images"],
-        "matches_added": block.get("num_matches_added", 0),
-    }
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     logger.info(
         "combined model: NRI aerial %s, ground %s; N3P %d; reprojection error %.2f px -> %s",
@@ -549,53 +507,6 @@ def main(
     )
     prog(1.0, "done")
     return sparse
-
-
-def add_block_matches(
-    db_path: Path,
-    ids: dict[str, int],
-    offsets: dict[str, int],
-    t_pairs: list,
-    ground_pts: dict[str, dict[str, np.ndarray]],
-    placed: dict[str, dict],
-    camera: Camera,
-    conf: dict,
-    pair_sizes: dict[int, int],
-    ag: list[tuple[str, str, np.ndarray]],
-) -> int:
-    """Write the transferred matches of the ground images the block localized (and the reducer did not):
-    those whose 3D point (the reducer's, ground_points.npz) reprojects within the block's keep_px under
-    the block's pose, for the pairs the database has none of. Appends them to `ag`; returns their number."""
-    done = {(a, g) for a, g, _ in ag}
-    keep_px = float(conf["block"]["keep_px"])
-    db = pycolmap.Database.open(str(db_path))
-    n = 0
-    try:
-        for pm in t_pairs:
-            a, g = (pm.name0, pm.name1) if pm.name0.startswith("aerial/") else (pm.name1, pm.name0)
-            if g not in placed or (a, g) in done or a not in offsets or g not in ground_pts:
-                continue
-            m = (pm.matches if pm.name0 == a else pm.matches[:, ::-1]).astype(np.int64)
-            pts = ground_pts[g]
-            where = {int(k): i for i, k in enumerate(pts["keypoints"])}
-            j = np.array([where.get(int(k), -1) for k in m[:, 1]], np.int64)
-            if not (j >= 0).any():
-                continue
-            m, X = m[j >= 0], pts["X"][j[j >= 0]]
-            pose = Pose(np.asarray(placed[g]["R"], float), np.asarray(placed[g]["t"], float))
-            kp = db.read_keypoints(ids[g])[m[:, 1], :2].astype(np.float64)
-            uv, z = pose.project(camera.K, X)
-            ok = (z > 0) & (np.linalg.norm(uv - kp, axis=1) <= keep_px)
-            if not ok.any():
-                continue
-            m = m[ok]
-            _write_pair(db, ids[a], ids[g], np.stack([m[:, 0] + offsets[a], m[:, 1]], 1), pair_sizes)
-            ag.append((a, g, m))
-            done.add((a, g))
-            n += len(m)
-    finally:
-        db.close()
-    return n
 
 
 def build_input_model(

@@ -13,8 +13,7 @@ JOB/plan/views.json      plan_views
 JOB/views/               render_views: NAME.png, NAME.depth.npy, views.json
 JOB/features/            match_views:  the aerial and ground images' matching features (cache)
 JOB/matches/NAME.h5      match_views:  one file per view
-JOB/transfer/            reduce:       matches.h5, database.db, ground_poses.json, ground_points.npz,
-                                        report.json
+JOB/transfer/            reduce:       matches.h5, database.db, ground_poses.json, report.json
 JOB/combined/            combined_sfm: sparse/, database.db, report.json
 JOB/splat_all/           splat_all:    the 3DGS of all registered images (optional stage), like splat/
 JOB/stages/STAGE.json    done markers: input fingerprint, outputs, seconds, summary
@@ -669,8 +668,7 @@ REGISTRY: dict[str, StageDef] = {
             j.cameras,
         ],
         lambda j: [
-            j.dir("transfer") / f
-            for f in ("matches.h5", "database.db", "ground_poses.json", "ground_points.npz", "report.json")
+            j.dir("transfer") / f for f in ("matches.h5", "database.db", "ground_poses.json", "report.json")
         ],
     ),
     "combined_sfm": StageDef(
@@ -683,7 +681,6 @@ REGISTRY: dict[str, StageDef] = {
             j.dir("sfm") / "georef.json",
             j.dir("transfer") / "matches.h5",
             j.dir("transfer") / "ground_poses.json",
-            j.dir("transfer") / "ground_points.npz",
             j.features_path,
             j.pos,
             j.cameras,

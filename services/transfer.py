@@ -748,7 +748,6 @@ def reduce_views(
             first[1:] = ig[order][1:] != ig[order][:-1]
             sel = order[first]
             kp = keypoints[g][ig[sel]].astype(np.float64)
-            stats.setdefault("ground_points", {})[g] = {"keypoints": ig[sel], "X": X[sel]}
             res = estimate_ground_pose(kp, X[sel], ground_camera, priors.get(g), prior_std.get(g), conf)
             pose = res.pop("_pose", None)
             res.pop("_inliers", None)
@@ -818,30 +817,6 @@ def write_match_file(
     return Path(path)
 
 
-def write_ground_points(path: str | Path, points: dict[str, dict[str, np.ndarray]]) -> Path:
-    """ground_points.npz: each ground image's PnP input, keypoint indices (N,) and their aerial-frame
-    points (N, 3), under the keys "<image>:keypoints" and "<image>:X"."""
-    arrays = {}
-    for g, d in sorted(points.items()):
-        arrays[f"{g}:keypoints"] = np.asarray(d["keypoints"], np.int64)
-        arrays[f"{g}:X"] = np.asarray(d["X"], np.float64).reshape(-1, 3)
-    np.savez(path, **arrays)
-    return Path(path)
-
-
-def read_ground_points(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
-    """The inverse of write_ground_points; {} when the file does not exist (an older reducer's output)."""
-    path = Path(path)
-    if not path.exists():
-        return {}
-    out: dict[str, dict[str, np.ndarray]] = {}
-    with np.load(path) as z:
-        for key in z.files:
-            g, field = key.rsplit(":", 1)
-            out.setdefault(g, {})[field] = z[key]
-    return out
-
-
 def pose_document(poses: dict[str, dict], georef: str | Path | None) -> dict:
     """ground_poses.json: PnP poses in the model frame (and WGS84 with the georef frame)."""
     frame = None
@@ -896,7 +871,6 @@ def main(
                 sizes[n] = (cams[s].width, cams[s].height)
         match_path = write_match_file(out_dir / "matches.h5", pairs, keypoints, sizes, stats["views"])
         (out_dir / "ground_poses.json").write_text(json.dumps(pose_document(poses, georef), indent=1))
-        write_ground_points(out_dir / "ground_points.npz", stats.pop("ground_points", {}))
         if database:
             from services.colmap_db import export_to_database
 
@@ -1007,13 +981,11 @@ def localize_direct(
             lifted[a] = lift_aerial_keypoints(rec, a, kps[a])
         m = pm.matches[inl]
         per_ground.setdefault(g, []).append((a, m, pm.scores[inl], lifted[a][m[:, 0]]))
-    pairs, poses, points = {}, {}, {}
+    pairs, poses = {}, {}
     for g, items in sorted(per_ground.items()):
         kp = np.concatenate([kps[g][m[:, 1]] for _, m, _, _ in items]).astype(np.float64)
         X = np.concatenate([x for _, _, _, x in items])
         ok = np.isfinite(X).all(1)
-        ig_all = np.concatenate([m[:, 1] for _, m, _, _ in items])
-        points[g] = {"keypoints": ig_all[ok], "X": X[ok]}
         res = estimate_ground_pose(kp[ok], X[ok], cams["ground"], priors.get(g), prior_std.get(g), conf)
         pose = res.pop("_pose", None)
         res.pop("_inliers", None)
@@ -1033,5 +1005,4 @@ def localize_direct(
             }
     path = write_match_file(out_dir / "matches.h5", pairs, kps, sizes, [], method="direct+pnp")
     (out_dir / "ground_poses.json").write_text(json.dumps(pose_document(poses, georef), indent=1))
-    write_ground_points(out_dir / "ground_points.npz", points)
     return path

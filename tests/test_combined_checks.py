@@ -1,0 +1,113 @@
+"""Checks of the combined reconstruction's database and model (services.combined_sfm): its ground-ground
+pairs, with their two-view geometries, are a database COLMAP's own mapper reconstructs the ground images
+from; ground images the mapper registers far from their POS are dropped."""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+
+from services import transfer
+from services.colmap_model import Camera, Pose
+from services.viewpoints import look_at
+
+CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
+STD = (2.5, 4.0, 2.0)
+PNP_CONF = transfer.default_conf["pnp"]
+
+
+def _street(n: int = 6) -> dict[str, Pose]:
+    """Ground cameras 4 m apart along a street (x), 1.6 m high, looking at a facade 10 m away (y)."""
+    return {
+        f"ground/G{i:04d}.jpg": look_at(
+            np.array([4.0 * i, 0.0, 1.6]), np.array([4.0 * i + 3 * (i % 2), 10.0, 3.0])
+        )
+        for i in range(n)
+    }
+
+
+def _database(path, true: dict[str, Pose], seed: int = 0) -> dict[str, np.ndarray]:
+    """A COLMAP database of the ground images `true` as services.combined_sfm writes it: keypoints of
+    facade points, each image matched with its next two, with the pair's relative pose (as
+    verify_ground_pair finds it). Returns the keypoints."""
+    from services import combined_sfm
+
+    rng = np.random.default_rng(seed)
+    n = 3000
+    P = np.stack([rng.uniform(-10, 32, n), 10.0 + rng.uniform(0, 3, n), rng.uniform(0, 12, n)], 1)
+    db = pycolmap.Database.open(str(path))
+    names = sorted(true)
+    ids = combined_sfm._write_ground(db, CAM, names)
+    seen, kps = {}, {}
+    for name in names:
+        uv, z = true[name].project(CAM.K, P)
+        idx = np.flatnonzero((z > 0) & (uv >= 0).all(1) & (uv[:, 0] < CAM.width) & (uv[:, 1] < CAM.height))
+        kps[name] = uv[idx] + rng.normal(0, 0.3, (len(idx), 2))
+        db.write_keypoints(ids[name], kps[name].astype(np.float32))
+        seen[name] = {int(p): k for k, p in enumerate(idx)}
+    for i, a in enumerate(names):
+        for b in names[i + 1 : i + 3]:
+            common = sorted(set(seen[a]) & set(seen[b]))
+            m = np.array([[seen[a][p], seen[b][p]] for p in common])
+            R = true[b].R @ true[a].R.T
+            t = true[b].t - R @ true[a].t
+            rel = {"R": R.tolist(), "t": (t / np.linalg.norm(t)).tolist()}
+            combined_sfm._write_pair(db, ids[a], ids[b], m, None, True, rel)
+    db.close()
+    return kps
+
+
+def test_colmaps_mapper_reconstructs_the_ground_images_from_the_database(tmp_path):
+    true = _street()
+    _database(tmp_path / "database.db", true)
+    o = pycolmap.IncrementalPipelineOptions()
+    o.extract_colors = False
+    o.ba_refine_focal_length = False
+    o.ba_refine_principal_point = False
+    o.ba_refine_extra_params = False
+    models = pycolmap.incremental_mapping(tmp_path / "database.db", tmp_path, tmp_path / "models", o)
+    assert len(models) == 1 and models[0].num_reg_images() == len(true)
+    # the model is the street up to a similarity: its camera centres keep their relative distances
+    rec = models[0]
+    c = np.array([rec.find_image_with_name(n).projection_center() for n in sorted(true)])
+    c_true = np.array([true[n].center for n in sorted(true)])
+    d, d_true = np.linalg.norm(c - c[0], axis=1)[1:], np.linalg.norm(c_true - c_true[0], axis=1)[1:]
+    assert np.allclose(d / d[-1], d_true / d_true[-1], atol=0.01)
+    # the stored two-view geometry is the pair's relative pose
+    db = pycolmap.Database.open(str(tmp_path / "database.db"))
+    ids = {im.name: im.image_id for im in db.read_all_images()}
+    a, b = sorted(true)[:2]
+    tvg = db.read_two_view_geometry(ids[a], ids[b])
+    db.close()
+    R_true = true[b].R @ true[a].R.T
+    assert np.allclose(np.asarray(tvg.cam2_from_cam1.rotation.matrix()), R_true, atol=1e-6)
+
+
+def test_mapper_registrations_far_from_their_pos_are_dropped():
+    """services.combined_sfm.drop_ill_determined: a ground image the mapper registered on well-spread
+    points is still dropped when its pose is 20 m from its POS (a repeated facade); one near it stays."""
+    from services.combined_sfm import drop_ill_determined
+
+    true = _street(2)
+    rng = np.random.default_rng(5)
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(CAM.to_pycolmap(1))
+    for i, (name, p) in enumerate(sorted(true.items()), start=1):
+        kp = np.stack([rng.uniform(50, 974, 80), rng.uniform(50, 718, 80)], 1)
+        X = p.unproject(CAM.K, kp, rng.uniform(8.0, 20.0, 80))
+        im = pycolmap.Image(name=name, keypoints=kp, camera_id=1, image_id=i)
+        rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(pycolmap.Rotation3d(p.R), p.t))
+        for k in range(len(kp)):
+            rec.add_point3D(X[k], pycolmap.Track([pycolmap.TrackElement(i, k)]), np.zeros(3, np.uint8))
+    priors = {n: Pose.from_center(p.R.T, p.center) for n, p in true.items()}
+    priors["ground/G0001.jpg"] = Pose.from_center(true["ground/G0001.jpg"].R.T, np.array([4.0, 20.0, 1.6]))
+    dropped = drop_ill_determined(rec, {}, 0.25, priors, {n: STD for n in true}, PNP_CONF)
+    assert list(dropped) == ["ground/G0001.jpg"] and "from the POS" in dropped["ground/G0001.jpg"]
+    assert rec.find_image_with_name("ground/G0000.jpg").has_pose
+    assert not rec.find_image_with_name("ground/G0001.jpg").has_pose
+    # an image at an accepted PnP pose is the reducer's to judge: kept
+    rec2 = pycolmap.Reconstruction(rec)
+    assert (
+        drop_ill_determined(rec2, {"ground/G0000.jpg": {"accepted": True}}, 0.25, priors, None, PNP_CONF)
+        == {}
+    )
