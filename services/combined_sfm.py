@@ -494,6 +494,8 @@ def main(
         added,
         dropped,
         conf["mapping"]["fix_aerial"],
+        pair_sizes,
+        int(conf["mapping"]["min_num_matches"]),
     )
     report["ground_pairs"] = gg_records
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
@@ -805,6 +807,8 @@ def build_report(
     added: list[str] | None = None,
     dropped: dict[str, str] | None = None,
     conf_fixed: bool = True,
+    pair_sizes: dict[int, int] | None = None,
+    min_pair_matches: int = 15,
 ) -> dict:
     reg = {im.name: im for im in rec.images.values() if im.has_pose}
     seeded = {im.name for im in seed.images.values() if im.has_pose and im.name.startswith("ground/")}
@@ -831,11 +835,19 @@ def build_report(
         elif g in (dropped or {}):
             d["reason"] = f"registered by the mapper but dropped: {dropped[g]}"
         else:
-            d["reason"] = (
-                "no verified aerial-ground or ground-ground matches strong enough to register it"
-                if not pnp.get(g, {}).get("accepted")
-                else "registered by PnP but dropped by the mapper"
-            )
+            largest = (pair_sizes or {}).get(ids[g], 0)
+            if pnp.get(g, {}).get("accepted"):
+                d["reason"] = "registered by PnP but dropped by the mapper"
+            elif pair_sizes is not None and largest >= min_pair_matches:
+                d["reason"] = (
+                    f"verified pairs (the largest {largest} matches), but too few of its matches reach"
+                    " 3D points of the registered images for the mapper to localize it"
+                )
+            else:
+                d["reason"] = (
+                    "no verified aerial-ground or ground-ground pair of at least"
+                    f" {min_pair_matches} matches to register it"
+                )
         ground[g] = d
     return {
         "NRI": nri,

@@ -111,3 +111,35 @@ def test_mapper_registrations_far_from_their_pos_are_dropped():
         drop_ill_determined(rec2, {"ground/G0000.jpg": {"accepted": True}}, 0.25, priors, None, PNP_CONF)
         == {}
     )
+
+
+def test_the_report_says_why_a_ground_image_is_not_registered():
+    from services.combined_sfm import build_report
+
+    true = _street(3)
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(CAM.to_pycolmap(1))
+    ids = {}
+    for i, (name, p) in enumerate(sorted(true.items()), start=1):
+        im = pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=1, image_id=i)
+        if i == 1:  # the first one registered, the others not
+            rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(pycolmap.Rotation3d(p.R), p.t))
+        else:
+            rec.add_image_with_trivial_frame(im)
+        ids[name] = i
+    g0, g1, g2 = sorted(true)
+    rep = build_report(
+        rec,
+        ids,
+        {},
+        {},
+        pycolmap.Reconstruction(),
+        None,
+        {},
+        0.0,
+        pair_sizes={2: 264, 3: 9},
+        min_pair_matches=15,
+    )
+    assert rep["NRI"]["ground"] == "1/3" and rep["ground"][g0]["registered"]
+    assert "the largest 264 matches" in rep["ground"][g1]["reason"]
+    assert "no verified aerial-ground or ground-ground pair of at least 15" in rep["ground"][g2]["reason"]
