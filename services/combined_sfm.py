@@ -67,6 +67,7 @@ default_conf: dict[str, Any] = {
     # observations leave the camera centre this uncertain (services.pose_uncertainty; None: kept), or
     # when their pose disagrees with their POS (the reducer's limits)
     "max_position_std_m": 0.25,
+    "pos_limits": None,  # those POS limits: the reducer's conf["pnp"] (None: services.transfer's defaults)
     "mapping": {
         "min_num_matches": 15,  # pairs with fewer matches are ignored by the mapper
         "abs_pose_min_num_inliers": 15,
@@ -447,7 +448,12 @@ def main(
             logger.warning("the mapper returned no model: keeping the seeded input model")
             rec = seed
         dropped = drop_ill_determined(
-            rec, pnp, conf["max_position_std_m"], priors, prior_std, transfer_default_conf["pnp"]
+            rec,
+            pnp,
+            conf["max_position_std_m"],
+            priors,
+            prior_std,
+            conf["pos_limits"] or transfer_default_conf["pnp"],
         )
         if dropped:
             logger.info(

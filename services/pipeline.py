@@ -219,7 +219,10 @@ class Job:
     def combined_conf(self) -> dict:
         from services import combined_sfm
 
-        return _merge(combined_sfm.default_conf, self.settings["combined"])
+        conf = _merge(combined_sfm.default_conf, self.settings["combined"])
+        if conf["pos_limits"] is None:  # the same POS limits as the reducer's poses
+            conf["pos_limits"] = self.transfer_conf()["pnp"]
+        return conf
 
     # renderer
     def renderer(self):
