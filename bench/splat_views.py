@@ -99,11 +99,11 @@ def main() -> None:
     gt = GroundTruthRenderer(args.scene, args.sparse)
     mconf = None
     if args.keypoints:
-        from services.features import confs as feature_confs
+        from services.matching.views import confs as match_confs
+        from services.matching.views import feature_conf
 
-        fconf = json.loads(json.dumps(feature_confs["aliked"]))
-        fconf["model"]["max_num_keypoints"] = args.keypoints
-        mconf = {"features": fconf, "matcher": {"name": "lightglue", "features": "aliked"}}
+        mconf = {**match_confs["aliked-lightglue"], "max_keypoints": args.keypoints}
+        mconf = {"features": feature_conf(mconf), "matcher": mconf["matcher"]}
     per_view: dict[str, dict[str, dict]] = {k: {} for k in models}
     seconds = {k: 0.0 for k in ["truth", *models]}
     for v in views:
