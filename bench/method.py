@@ -3,7 +3,7 @@
     python bench/method.py [--preset small] [--seed 0] [--renderers gt,splat]
                            [--planners paper,ground-aware,both] [--views 2] [--max-keypoints 1024]
                            [--matchers aliked-lightglue,sift] [--sift-keypoints 8192]
-                           [--splat-steps 1500] [--splat-set KEY=VALUE]
+                           [--splat-steps 1500] [--splat-set KEY=VALUE] [--view-set KEY=VALUE]
                            [--adopt-sfm DIR] [--adopt-splat DIR] [--out DIR]
 
 One aerial SfM (and one 3DGS model) is shared by every configuration: a base job runs aerial_sfm and
@@ -189,6 +189,13 @@ def main(argv: list[str] | None = None) -> int:
         metavar="KEY=VALUE",
         help="3DGS conf entry (services.splat confs), repeatable: --splat-set depth_lambda=0.05",
     )
+    ap.add_argument(
+        "--view-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="viewpoint conf entry (services.viewpoints confs), repeatable: --view-set ground.max_width=640",
+    )
     ap.add_argument("--torch-threads", type=int, default=1)
     ap.add_argument("--no-sfm", action="store_true", help="skip the combined reconstructions")
     ap.add_argument("--adopt-sfm", type=Path, help="an aerial SfM output folder to use instead of running it")
@@ -222,9 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     # the aerial SfM of services.sfm.confs["sift-fast"] (SIFT at 1024 px, exhaustive matching)
     from services.splat import confs as splat_confs
     from services.splat.train import parse_overrides
+    from services.viewpoints import confs as view_confs
 
     settings = {
         "splat": parse_overrides(args.splat_set, splat_confs["fast"]),
+        "viewpoints": parse_overrides(args.view_set, view_confs["both"]),
         "torch_threads": args.torch_threads,
         "scene": str(scene),
         "sfm": {"output": "sfm-sift-fast", "features": {"max_image_size": 1024, "max_num_features": 4096}},

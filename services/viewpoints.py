@@ -64,7 +64,9 @@ _BASE: dict[str, Any] = {
     },
     "paper": {
         "height_fraction": 0.5,  # equation 3: half the height above the target
+        "extra_height_fractions": [],  # more views per aerial camera at these fractions (named P-<stem>-hNN)
         "max_width": 1024,  # views keep the aerial camera's field of view at this width
+        "views_per_ground_image": None,  # None: the conf's views_per_ground_image
     },
     "ground": {
         "look_ahead_m": 15.0,  # target when the optical axis meets nothing in [min_target_m, max_target_m]
@@ -86,6 +88,7 @@ _BASE: dict[str, Any] = {
             [30.0, "aerial"],
         ],
         "max_width": 1024,  # views use the ground camera's intrinsics, scaled to at most this width
+        "views_per_ground_image": None,  # None: the conf's views_per_ground_image
         "fov_scale": 1.0,  # > 1 widens the field of view (focal length divided by it)
         "occlusion_ratio": 0.85,  # occluded: the view's depth towards the target is below this x its distance
     },
@@ -420,8 +423,9 @@ def _stem(name: str) -> str:
 
 
 def plan_paper(scene: Scene, conf: dict) -> list[ViewSpec]:
-    """One view per aerial camera (equations 3-4); their candidates are assigned."""
+    """One view per aerial camera and height fraction (equations 3-4); their candidates are assigned."""
     pc = conf["paper"]
+    fractions = [float(pc["height_fraction"])] + [float(f) for f in pc.get("extra_height_fractions") or []]
     views = []
     for a in sorted(scene.aerial_poses):
         cam, pose = scene.aerial_cameras[a], scene.aerial_poses[a]
@@ -431,17 +435,23 @@ def plan_paper(scene: Scene, conf: dict) -> list[ViewSpec]:
             continue
         if pose.center[2] - T[2] < 1.0:
             continue
-        new_pose, beta = paper_viewpoint(pose, T, pc["height_fraction"])
-        v = ViewSpec(
-            f"P-{_stem(a)}",
-            "paper",
-            a,
-            scaled_camera(cam, pc["max_width"]),
-            new_pose,
-            T,
-            meta={"beta_deg": beta, "target_from": how, "pitch_deg": pitch_deg(new_pose)},
-        )
-        views.append(assign_candidates(v, scene, conf))
+        for i, fraction in enumerate(fractions):
+            new_pose, beta = paper_viewpoint(pose, T, fraction)
+            v = ViewSpec(
+                f"P-{_stem(a)}" + ("" if i == 0 else f"-h{round(100 * fraction):02d}"),
+                "paper",
+                a,
+                scaled_camera(cam, pc["max_width"]),
+                new_pose,
+                T,
+                meta={
+                    "beta_deg": beta,
+                    "target_from": how,
+                    "pitch_deg": pitch_deg(new_pose),
+                    "height_fraction": fraction,
+                },
+            )
+            views.append(assign_candidates(v, scene, conf))
     return views
 
 
@@ -591,12 +601,14 @@ def cover_aerial(views: list[ViewSpec], scene: Scene, conf: dict) -> int:
 def plan(scene: Scene, conf: dict) -> list[ViewSpec]:
     """The views of conf["planner"] (paper, ground-aware or both), sorted by name."""
     n = int(conf["views_per_ground_image"])
+    n_paper = int(conf["paper"].get("views_per_ground_image") or n)
+    n_ground = int(conf["ground"].get("views_per_ground_image") or n)
     planner = conf["planner"]
     views: list[ViewSpec] = []
     if planner in ("paper", "both"):
-        views += select_paper(plan_paper(scene, conf), scene, conf, n)
+        views += select_paper(plan_paper(scene, conf), scene, conf, n_paper)
     if planner in ("ground-aware", "both"):
-        views += plan_ground_aware(scene, conf, n)
+        views += plan_ground_aware(scene, conf, n_ground)
     if planner not in ("paper", "ground-aware", "both"):
         raise ValueError(f"unknown planner {planner!r} (paper, ground-aware, both)")
     views = [v for v in views if v.aerial and v.ground]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -171,6 +173,30 @@ def test_paper_planner_selects_views_per_ground_image():
         assert v.source in scene.aerial_poses and v.aerial[0] == v.source
         assert principal_point_error(v.camera, v.pose, v.target) < 1e-6
         assert v.center[2] == pytest.approx(30.0)  # half of 60 m above the terrain target
+
+
+def test_paper_planner_extra_heights_and_per_planner_counts():
+    ground = {"ground/G0001.jpg": pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)}
+    scene = make_scene(ground)
+    over = {
+        "views_per_ground_image": 1,
+        "paper": {"extra_height_fractions": [0.25], "views_per_ground_image": 2},
+        "ground": {"views_per_ground_image": 3},
+    }
+    views = vp.plan(scene, vp._merge(vp.confs["both"], over))
+    paper = [v for v in views if v.planner == "paper"]
+    assert sum(v.planner == "ground-aware" for v in views) == 3
+    # the best aerial camera at both heights: the same target, on the principal ray at 30 m and 15 m
+    assert len(paper) == 2 and paper[0].source == paper[1].source
+    by_fraction = {v.meta["height_fraction"]: v for v in paper}
+    assert by_fraction[0.5].name == "P-" + Path(paper[0].source).stem
+    assert by_fraction[0.25].name == by_fraction[0.5].name + "-h25"
+    assert by_fraction[0.5].center[2] == pytest.approx(30.0)
+    assert by_fraction[0.25].center[2] == pytest.approx(15.0)
+    np.testing.assert_allclose(by_fraction[0.25].target, by_fraction[0.5].target)
+    for v in paper:
+        assert principal_point_error(v.camera, v.pose, v.target) < 1e-6
+        assert "ground/G0001.jpg" in v.ground
 
 
 def test_views_json_round_trip(tmp_path):

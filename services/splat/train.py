@@ -164,8 +164,8 @@ def parse_overrides(items: list[str], base: dict) -> dict:
     "lr.means=3e-4") -> a nested override of `base` (merge it with `_merge`).
 
     Keys must exist in `base`; a value must fit the kind of the one it replaces (ints stay ints, a number
-    for a float, a list of the same length for a list, no group replaced by a value). Raises ValueError
-    with the reason."""
+    for a float, a list of the same length for a list, of any length for an empty one, no group replaced
+    by a value). Raises ValueError with the reason."""
     over: dict = {}
     for item in items:
         key, sep, text = item.partition("=")
@@ -196,7 +196,7 @@ def parse_overrides(items: list[str], base: dict) -> dict:
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError(f"{key}: expected a number, got {text!r}")
             value = float(value)
-        elif isinstance(old, list) and not (isinstance(value, list) and len(value) == len(old)):
+        elif isinstance(old, list) and not (isinstance(value, list) and (len(value) == len(old) or not old)):
             raise ValueError(f"{key}: expected a list of {len(old)} values, e.g. {json.dumps(old)}")
         dst[last] = value
     return over
