@@ -211,3 +211,14 @@ def test_views_json_round_trip(tmp_path):
         np.testing.assert_allclose(a.pose.t, b.pose.t)
         assert a.camera == b.camera and a.aerial == b.aerial and a.ground == b.ground
     assert {v.planner for v in views} == {"paper", "ground-aware"}
+
+
+def test_viewpoint_overrides_take_lists_for_empty_ones():
+    from services.splat.train import parse_overrides
+
+    over = parse_overrides(["paper.extra_height_fractions=[0.3, 0.7]"], vp.confs["both"])
+    assert over == {"paper": {"extra_height_fractions": [0.3, 0.7]}}
+    with pytest.raises(ValueError, match="list"):
+        parse_overrides(["paper.extra_height_fractions=0.3"], vp.confs["both"])
+    with pytest.raises(ValueError, match="unknown key"):
+        parse_overrides(["paper.height_fractions=[0.3]"], vp.confs["both"])
