@@ -8,7 +8,7 @@ from services.colmap_model import Camera, Pose
 from services.splat.backend import rasterization
 from services.splat.cpu import rasterize_cpu
 from services.splat.model import splats_from_tensors
-from services.splat.projection import project_gaussians
+from services.splat.projection import frustum_candidates, project_gaussians
 from services.splat.reference import rasterize_reference
 from services.splat.render import look_at, lowered_pose, render
 from services.splat.sh import sh_to_rgb
@@ -188,3 +188,58 @@ def test_lowered_pose_looks_at_the_same_ground_point():
     assert np.allclose(low.center, [0, -60, 30])
     uv, z = low.project(np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]]), np.zeros((1, 3)))
     assert np.allclose(uv, [[50, 50]]) and z[0] > 0
+
+
+def _wide_scene(seed: int, W: int = 64, H: int = 48) -> dict:
+    """A random scene spread well beyond a camera's view (x, y up to 4x the frustum, some behind the camera,
+    some near it and large), seen with an off-centre principal point."""
+    s = random_scene(3000, W, H, seed=seed, sigma_px=(0.3, 12.0), depth=(-2.0, 9.0))
+    s["means"][:, :2] *= 4.0
+    s["K"][0, 2], s["K"][1, 2] = 0.3 * W, 0.65 * H
+    return s
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_frustum_candidates_hold_every_projected_gaussian(seed):
+    """The cheap cull keeps a superset of what the projection keeps (radii > 0) and drops most of the rest."""
+    W, H = 64, 48
+    s = _wide_scene(seed, W, H)
+    args = (s["means"], s["scales"], s["opacities"], s["viewmat"], s["K"], W, H)
+    ids = frustum_candidates(*args)
+    _, _, _, radii = project_gaussians(
+        s["means"], s["quats"], s["scales"], s["opacities"], s["viewmat"], s["K"], W, H
+    )
+    visible = set(torch.nonzero((radii > 0).all(-1))[:, 0].tolist())
+    kept = set(ids.tolist())
+    assert visible <= kept
+    assert len(kept) < 0.5 * len(s["means"]) and len(visible) > 0.3 * len(kept)
+
+
+@pytest.mark.parametrize("mode", ["RGB", "RGB+ED"])
+def test_culling_renders_the_same_image_and_gradients(mode, monkeypatch):
+    """Projecting only the frustum candidates gives the same outputs, info and gradients as projecting all."""
+    import services.splat.backend as backend
+
+    W, H = 64, 48
+    s = _wide_scene(3, W, H)
+    out = {}
+    for cull in (True, False):
+        if not cull:
+            monkeypatch.setattr(
+                backend, "frustum_candidates", lambda means, *a, **k: torch.arange(len(means))
+            )
+        p = {k: s[k].clone().requires_grad_() for k in PARAMS}
+        c, a, info = rasterization(
+            p["means"], p["quats"], p["scales"], p["opacities"], p["sh"], s["viewmat"], s["K"], W, H,
+            sh_degree=0, render_mode=mode, backend="cpu",
+        )  # fmt: skip
+        info["means2d"].retain_grad()
+        w = torch.rand(c.shape, generator=torch.Generator().manual_seed(0))
+        ((c * w).sum() + a.sum()).backward()
+        out[cull] = (c.detach(), info, {k: p[k].grad for k in PARAMS})
+    (c1, i1, g1), (c0, i0, g0) = out[True], out[False]
+    torch.testing.assert_close(c1, c0, atol=1e-6, rtol=1e-6)
+    assert torch.equal(i1["radii"], i0["radii"])
+    torch.testing.assert_close(i1["means2d"].grad, i0["means2d"].grad, atol=1e-7, rtol=1e-5)
+    for k in PARAMS:
+        torch.testing.assert_close(g1[k], g0[k], atol=1e-7, rtol=1e-5)

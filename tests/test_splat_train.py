@@ -479,3 +479,34 @@ def test_depth_loss_brings_rendered_depth_to_the_sfm_points(tmp_path):
         errs[lam] = tr.evaluate(data.train_ids)["depth_err"]
         assert errs[lam] < before
     assert errs[2.0] < 0.8 * errs[0.0]
+
+
+def test_cpu_blur_and_ssim_match_conv2d():
+    """The numba SSIM window (forward and adjoint) equals F.conv2d's grouped separable convolution, and
+    SSIM with the target's statistics precomputed equals SSIM without."""
+    import torch.nn.functional as F
+
+    from services.splat.cpu import separable_blur_cpu
+    from services.splat.loss import _window, ssim, ssim_stats
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(5, 23, 37, generator=g, dtype=torch.float64).requires_grad_()
+    w = _window(11)
+    wx, wy = w.reshape(1, 1, 1, 11).repeat(5, 1, 1, 1), w.reshape(1, 1, 11, 1).repeat(5, 1, 1, 1)
+    ref = F.conv2d(F.conv2d(x[None].float(), wx, padding=(0, 5), groups=5), wy, padding=(5, 0), groups=5)[0]
+    y = separable_blur_cpu(x, w)
+    assert y.dtype == torch.float64
+    torch.testing.assert_close(y.float(), ref, atol=1e-6, rtol=1e-5)
+    v = torch.rand(5, 23, 37, generator=g)
+    (gx,) = torch.autograd.grad((ref * v).sum(), x)
+    (gy,) = torch.autograd.grad((y.float() * v).sum(), x)
+    torch.testing.assert_close(gy.float(), gx.float(), atol=1e-6, rtol=1e-5)
+    a = torch.rand(30, 41, 3, generator=g).requires_grad_()
+    b = torch.rand(30, 41, 3, generator=g)
+    s1 = ssim(a, b)
+    s2 = ssim(a, b, stats2=ssim_stats(b))
+    assert float(s1) == pytest.approx(float(s2), abs=1e-7) and 0 < float(s1) < 1
+    (g1,) = torch.autograd.grad(s1, a)
+    (g2,) = torch.autograd.grad(s2, a)
+    torch.testing.assert_close(g1, g2)
+    assert float(ssim(b, b)) == pytest.approx(1.0, abs=1e-5)

@@ -16,7 +16,7 @@ from typing import Literal
 
 import torch
 
-from .projection import FAR, NEAR, project_gaussians
+from .projection import FAR, NEAR, frustum_candidates, project_gaussians
 from .sh import spherical_harmonics
 
 Backend = Literal["cpu", "reference", "cuda"]
@@ -86,10 +86,19 @@ def rasterization(
             means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree=sh_degree,
             backgrounds=backgrounds, render_mode=render_mode, near_plane=near_plane, far_plane=far_plane,
         )  # fmt: skip
+    # project only the Gaussians that can reach the image (the rest get radii 0 and no gradient)
+    n = means.shape[0]
+    ids = frustum_candidates(means, scales, opacities, viewmat, K, width, height, near_plane, far_plane)
+    sub = ids.numel() < n
+    if sub:
+        means, quats, scales, opacities, colors = (x[ids] for x in (means, quats, scales, opacities, colors))
     means2d, conics, depths, radii = project_gaussians(
         means, quats, scales, opacities, viewmat, K, width, height, near=near_plane, far=far_plane
     )
     rgb = view_colors(means, colors, viewmat, sh_degree) if "RGB" in render_mode else None
+    if sub:  # full-size outputs for the caller; the rasterizer reads the 2D means through them
+        full_means2d = means2d.new_zeros(n, 2).index_copy(0, ids, means2d)
+        means2d = full_means2d[ids]
     d = depths[:, None]
     feats = d if rgb is None else (rgb if render_mode == "RGB" else torch.cat([rgb, d], -1))
     if backend == "reference":
@@ -99,6 +108,11 @@ def rasterization(
     out, alphas = raster(means2d, conics, feats, opacities, depths, radii, width, height, backgrounds)
     if render_mode.endswith("ED"):
         out = torch.cat([out[..., :-1], out[..., -1:] / alphas.clamp_min(1e-10)], -1)
+    if sub:
+        means2d = full_means2d
+        depths = depths.detach().new_zeros(n).index_copy(0, ids, depths.detach())
+        conics = conics.detach().new_zeros(n, 3).index_copy(0, ids, conics.detach())
+        radii = radii.new_zeros(n, 2).index_copy(0, ids, radii)
     info = dict(means2d=means2d, radii=radii, depths=depths, conics=conics, width=width, height=height)
     info["n_cameras"] = 1
     return out, alphas, info

@@ -18,19 +18,37 @@ def _window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     return g
 
 
-def ssim(img1: torch.Tensor, img2: torch.Tensor, size: int = 11) -> torch.Tensor:
-    """Mean SSIM of two (H, W, C) images in [0, 1] (11x11 Gaussian window, sigma 1.5, zero padding as in
-    the 3DGS code). The window is applied separably."""
-    C = img1.shape[-1]
-    x = torch.stack([img1, img2, img1 * img1, img2 * img2, img1 * img2]).permute(0, 3, 1, 2)
-    x = x.reshape(1, 5 * C, *img1.shape[:2])
-    g = _window(size).to(img1)
-    wx = g.reshape(1, 1, 1, size).repeat(5 * C, 1, 1, 1)
-    wy = g.reshape(1, 1, size, 1).repeat(5 * C, 1, 1, 1)
+def _blur(x: torch.Tensor, size: int) -> torch.Tensor:
+    """(K, H, W) -> the same filtered by the Gaussian window (separable, zero padded)."""
+    g = _window(size).to(x)
+    if x.device.type == "cpu":
+        from .cpu import separable_blur_cpu
+
+        return separable_blur_cpu(x, g)
+    K = x.shape[0]
+    wx, wy = g.reshape(1, 1, 1, size).repeat(K, 1, 1, 1), g.reshape(1, 1, size, 1).repeat(K, 1, 1, 1)
     y = F.conv2d(
-        F.conv2d(x, wx, padding=(0, size // 2), groups=5 * C), wy, padding=(size // 2, 0), groups=5 * C
+        F.conv2d(x[None], wx, padding=(0, size // 2), groups=K), wy, padding=(size // 2, 0), groups=K
     )
-    mu1, mu2, s11, s22, s12 = y.reshape(5, C, *img1.shape[:2])
+    return y[0]
+
+
+def ssim_stats(img: torch.Tensor, size: int = 11) -> torch.Tensor:
+    """Windowed mean and mean square of an (H, W, C) image: (2, C, H, W). `ssim`'s second image's part,
+    which a trainer computes once per target image."""
+    x = torch.stack([img, img * img]).permute(0, 3, 1, 2)
+    return _blur(x.reshape(2 * img.shape[-1], *img.shape[:2]), size).reshape(2, img.shape[-1], *img.shape[:2])
+
+
+def ssim(
+    img1: torch.Tensor, img2: torch.Tensor, size: int = 11, stats2: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Mean SSIM of two (H, W, C) images in [0, 1] (11x11 Gaussian window, sigma 1.5, zero padding as in
+    the 3DGS code). The window is applied separably. `stats2`: `ssim_stats(img2)`, when already known."""
+    C = img1.shape[-1]
+    mu2, s22 = ssim_stats(img2, size) if stats2 is None else stats2
+    x = torch.stack([img1, img1 * img1, img1 * img2]).permute(0, 3, 1, 2)
+    mu1, s11, s12 = _blur(x.reshape(3 * C, *img1.shape[:2]), size).reshape(3, C, *img1.shape[:2])
     mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
     s1, s2, s12 = s11 - mu1_sq, s22 - mu2_sq, s12 - mu12
     c1, c2 = 0.01**2, 0.03**2
@@ -39,11 +57,15 @@ def ssim(img1: torch.Tensor, img2: torch.Tensor, size: int = 11) -> torch.Tensor
 
 
 def photometric_loss(
-    render: torch.Tensor, target: torch.Tensor, ssim_lambda: float = 0.2
+    render: torch.Tensor,
+    target: torch.Tensor,
+    ssim_lambda: float = 0.2,
+    target_stats: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """(1 - ssim_lambda) * L1 + ssim_lambda * (1 - SSIM) of (H, W, 3) images; also returns the terms."""
+    """(1 - ssim_lambda) * L1 + ssim_lambda * (1 - SSIM) of (H, W, 3) images; also returns the terms.
+    `target_stats`: `ssim_stats(target)`, when already known."""
     l1 = (render - target).abs().mean()
-    s = ssim(render, target)
+    s = ssim(render, target, stats2=target_stats)
     loss = (1 - ssim_lambda) * l1 + ssim_lambda * (1 - s)
     return loss, {"l1": float(l1.detach()), "ssim": float(s.detach())}
 

@@ -110,6 +110,48 @@ def project_gaussians(
     return means2d, conics, z, radii
 
 
+@torch.no_grad()
+def frustum_candidates(
+    means: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    near: float = NEAR,
+    far: float = FAR,
+    eps2d: float = EPS2D,
+) -> torch.Tensor:
+    """Indices (M,) of a superset of the Gaussians `project_gaussians` keeps (radii > 0): in the depth range,
+    opaque enough to reach ALPHA_MIN, and with a bound on their screen extent that reaches the image.
+
+    means (N, 3), scales (N, 3) (not log), opacities (N,), viewmat (4, 4), K (3, 3). The bound: a row of the
+    2D covariance's factor T = J W R_q S has norm at most f / z * max(scale) * (1 + |x / z|) (the rows of
+    W R_q are unit vectors, x / z clamped as in the projection), so a radius is at most
+    sqrt(2 ln(o / ALPHA_MIN)) * (that + sqrt(eps2d)) pixels. Projecting only these Gaussians renders the
+    same image; an aerial view sees a quarter of an aerial block's Gaussians.
+    """
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    pc = means @ R.T + t
+    z = pc[:, 2]
+    k = 2.0 * torch.log((opacities / ALPHA_MIN).clamp_min(1e-12))
+    ok = (z > near) & (z < far) & (k > 0)
+    zs = torch.where(ok, z, torch.ones_like(z))
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    lim_x = max(width - cx, cx) / fx + 0.3 * tan_x
+    lim_y = max(height - cy, cy) / fy + 0.3 * tan_y
+    smax = scales.max(-1).values / zs
+    root_k = k.clamp_min(0).sqrt()
+    ex = root_k * (fx * smax * (1 + lim_x) + math.sqrt(eps2d)) * 1.01 + 2.0
+    ey = root_k * (fy * smax * (1 + lim_y) + math.sqrt(eps2d)) * 1.01 + 2.0
+    mx = fx * pc[:, 0] / zs + cx
+    my = fy * pc[:, 1] / zs + cy
+    ok &= (mx + ex > 0) & (mx - ex < width) & (my + ey > 0) & (my - ey < height)
+    return torch.nonzero(ok)[:, 0]
+
+
 def pixel_rects(means2d: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """Pixel ranges [x0, x1) x [y0, y1) whose centres lie within `radii` of `means2d`: (N, 4) int32
     (x0, y0, x1, y1), clipped to the image; empty for culled Gaussians. Every backend uses these."""

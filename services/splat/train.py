@@ -29,7 +29,7 @@ from services.colmap_model import Camera, Pose
 from shared.logging import stage
 
 from .backend import rasterization, resolve_backend
-from .loss import photometric_loss, psnr, sample_depth, sparse_depth_loss, ssim
+from .loss import photometric_loss, psnr, sample_depth, sparse_depth_loss, ssim, ssim_stats
 from .model import activated, create_splats, random_points, splats_from_tensors
 from .ply import save_ply
 from .projection import viewmat_from_pose
@@ -455,7 +455,8 @@ class Trainer:
 
     def _loop(self, stop_after: int | None, progress: bool) -> None:
         c = self.conf
-        imgs = {}
+        imgs: dict[str, torch.Tensor] = {}
+        stats: dict[str, torch.Tensor] = {}
         bar = None
         if progress:
             from tqdm import tqdm
@@ -467,13 +468,16 @@ class Trainer:
             v = self.data.views[self.view_at(step)]
             if v.name not in imgs:
                 imgs[v.name] = v.image.to(self.device)
+                if self.device.type == "cpu":  # the target's half of SSIM, once per image (GPUs recompute)
+                    with torch.no_grad():
+                        stats[v.name] = ssim_stats(imgs[v.name])
             self.optimizers["means"].param_groups[0]["lr"] = self.means_lr(step)
             use_depth = c["depth_lambda"] > 0 and v.depth_targets is not None and len(v.depth_targets) > 0
             colors, _, info = self.render_view(v, self.sh_degree_at(step), depth=use_depth)
             self.strategy.step_pre_backward(self.splats, self.optimizers, self.strategy_state, step, info)
             if use_depth:
                 colors, depth = colors[..., :3], colors[..., 3]
-            loss, terms = photometric_loss(colors, imgs[v.name], c["ssim_lambda"])
+            loss, terms = photometric_loss(colors, imgs[v.name], c["ssim_lambda"], stats.get(v.name))
             if use_depth:
                 dl = sparse_depth_loss(
                     depth, v.depth_pixels.to(self.device), v.depth_targets.to(self.device), self.extent

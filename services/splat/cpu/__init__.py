@@ -1,6 +1,7 @@
 """Compiled CPU backend: a tile rasterizer in numba, wrapped in a `torch.autograd.Function`.
 
     colors, alphas = rasterize_cpu(means2d, conics, colors, opacities, depths, radii, width, height)
+    blurred = separable_blur_cpu(x, weights)   # the SSIM window, (K, H, W)
 
 Same inputs, outputs and rules as `services.splat.reference.rasterize_reference`; gradients flow to
 means2d, conics, colors and opacities. Kernels compute in float32 (inputs of other dtypes are cast and
@@ -97,6 +98,25 @@ class _RasterizeCPU(torch.autograd.Function):
         )
 
 
+class _BlurCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, weights):
+        ctx.weights = _np32(weights)
+        out = _run_parallel(kernels.separable_blur, _np32(x), ctx.weights)
+        return torch.from_numpy(out).to(x.dtype)
+
+    @staticmethod
+    def backward(ctx, v_out):  # a symmetric zero-padded filter is its own adjoint
+        v = _run_parallel(kernels.separable_blur, _np32(v_out), ctx.weights)
+        return torch.from_numpy(v).to(v_out.dtype), None
+
+
+def separable_blur_cpu(x: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """x (K, H, W) filtered along rows and columns by the symmetric 1D kernel `weights` (odd length), zero
+    padded, same size; differentiable in x. F.conv2d's grouped convolution of the same, 2-3x faster."""
+    return _BlurCPU.apply(x, weights)
+
+
 def rasterize_cpu(
     means2d: torch.Tensor,
     conics: torch.Tensor,
@@ -116,4 +136,4 @@ def rasterize_cpu(
     return _RasterizeCPU.apply(means2d, conics, colors, opacities, depths, radii, width, height, backgrounds)
 
 
-__all__ = ["rasterize_cpu"]
+__all__ = ["rasterize_cpu", "separable_blur_cpu"]

@@ -246,3 +246,32 @@ def sum_per_gaussian(grads, gids, n):
         for j in range(grads.shape[1]):
             out[g, j] += grads[k, j]
     return out
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def separable_blur(x, w):
+    """x (K, H, W) float32 filtered by the symmetric 1D kernel w (2r + 1,) along rows, then columns, with
+    zero padding ("same" size). The filter is its own adjoint, so the backward pass calls it on the
+    output gradient. Inner loops run along rows of zero-padded copies (vectorised)."""
+    K, H, W = x.shape
+    r = w.shape[0] // 2
+    out = np.empty_like(x)
+    for c in prange(K):
+        pad = np.zeros(W + 2 * r, np.float32)
+        tmp = np.zeros((H + 2 * r, W), np.float32)  # the row-filtered image between r zero rows
+        for y in range(H):
+            pad[r : r + W] = x[c, y]
+            row = tmp[y + r]
+            for k in range(2 * r + 1):
+                wk = w[k]
+                for i in range(W):
+                    row[i] += wk * pad[i + k]
+        for y in range(H):
+            o = out[c, y]
+            o[:] = 0
+            for k in range(2 * r + 1):
+                wk = w[k]
+                t = tmp[y + k]
+                for i in range(W):
+                    o[i] += wk * t[i]
+    return out
