@@ -243,3 +243,19 @@ def test_culling_renders_the_same_image_and_gradients(mode, monkeypatch):
     torch.testing.assert_close(i1["means2d"].grad, i0["means2d"].grad, atol=1e-7, rtol=1e-5)
     for k in PARAMS:
         torch.testing.assert_close(g1[k], g0[k], atol=1e-7, rtol=1e-5)
+
+
+def test_bench_splat_step_runs_and_its_variants_render_alike():
+    """bench/splat_step.py on a tiny scene: a row per variant and the same image from all of them."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "bench" / "splat_step.py"
+    args = ["--n", "400", "--width", "64", "--height", "48", "--steps", "1"]
+    res = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    for variant in ("trainer", "no cull", "conv2d SSIM", "neither"):
+        assert variant in res.stdout
+    diff = float(res.stdout.split("variants' images:")[1].split()[0])
+    assert diff < 1e-5

@@ -19,12 +19,18 @@ def _window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
 
 
 def _blur(x: torch.Tensor, size: int) -> torch.Tensor:
-    """(K, H, W) -> the same filtered by the Gaussian window (separable, zero padded)."""
-    g = _window(size).to(x)
+    """(K, H, W) -> the same filtered by the Gaussian window (separable, zero padded): numba on the CPU,
+    F.conv2d elsewhere."""
     if x.device.type == "cpu":
         from .cpu import separable_blur_cpu
 
-        return separable_blur_cpu(x, g)
+        return separable_blur_cpu(x, _window(size).to(x))
+    return _blur_conv2d(x, size)
+
+
+def _blur_conv2d(x: torch.Tensor, size: int) -> torch.Tensor:
+    """`_blur` by F.conv2d's grouped convolution."""
+    g = _window(size).to(x)
     K = x.shape[0]
     wx, wy = g.reshape(1, 1, 1, size).repeat(K, 1, 1, 1), g.reshape(1, 1, size, 1).repeat(K, 1, 1, 1)
     y = F.conv2d(
