@@ -122,6 +122,18 @@ def run(
     renderer: str = typer.Option("splat", help="splat (3DGS) or gt (ground truth of --scene: benchmarks)"),
     scene: Path | None = typer.Option(None, help="synthetic scene folder, for --renderer gt"),
     torch_threads: int | None = typer.Option(None, help="torch threads (1 is fastest on a busy machine)"),
+    splat_set: list[str] = typer.Option(
+        [],
+        "--splat-set",
+        metavar="KEY=VALUE",
+        help="3DGS conf entry (services.splat confs), repeatable: --splat-set strategy.max_gaussians=120000",
+    ),
+    view_set: list[str] = typer.Option(
+        [],
+        "--view-set",
+        metavar="KEY=VALUE",
+        help="viewpoint conf entry (services.viewpoints), repeatable: --view-set paper.max_width=768",
+    ),
 ) -> None:
     """Register ground images with aerial images through rendered intermediate views: aerial SfM, 3DGS,
     view planning and rendering, matching, transfer (OUT/transfer/matches.h5, database.db,
@@ -138,6 +150,17 @@ def run(
         _fail(f"unknown stage(s) {bad}: stages are {', '.join(STAGES)}")
     if renderer == "gt" and scene is None:
         _fail("--renderer gt needs --scene (a synthetic scene folder)")
+    from services.splat import confs as splat_confs
+    from services.splat.train import parse_overrides
+    from services.viewpoints import confs as view_confs
+
+    try:
+        overrides = {
+            "splat": parse_overrides(splat_set, splat_confs["fast"]),
+            "viewpoints": parse_overrides(view_set, view_confs["both"]),
+        }
+    except ValueError as e:
+        _fail(f"--splat-set / --view-set: {e}")
     try:
         job = pipeline.Job.create(
             out,
@@ -160,6 +183,7 @@ def run(
                 "renderer": renderer,
                 "scene": str(scene) if scene else None,
                 "torch_threads": torch_threads,
+                **overrides,
             },
         )
     except (FileNotFoundError, ValidationError) as e:

@@ -114,3 +114,32 @@ def test_run_of_a_stage_before_its_inputs_exist_says_which_stages_to_run(tiny_sc
     for made_by in ("aerial_sfm", "render_views", "match_views"):
         assert f"(made by {made_by})" in result.output
     assert not (out / "stages" / "reduce.json").exists() and not (out / "transfer").exists()
+
+
+def test_run_takes_splat_and_view_overrides_and_rejects_bad_ones(tiny_scene, tmp_path):
+    """`midview run --splat-set/--view-set KEY=VALUE`: kept in job.json and used by the stages' confs; an
+    unknown key or a value of the wrong kind exits 2 with the reason before a job folder is made."""
+    from services.pipeline import Job
+
+    s = tiny_scene
+    args = [str(s / "images" / "aerial"), str(s / "images" / "ground"), str(s / "pos.csv")]
+    cams = ["--cameras", str(s / "cameras.json")]
+    bad = tmp_path / "bad"
+    for item, msg in (
+        (["--splat-set", "strategy.max_gausians=5"], "unknown key 'max_gausians'"),
+        (["--splat-set", "strategy.max_gaussians=many"], "expected an integer"),
+        (["--view-set", "paper.height=0.4"], "unknown key 'height'"),
+    ):
+        result = runner.invoke(app, ["run", *args, str(bad), *cams, *item])
+        assert result.exit_code == 2, result.output
+        assert msg in result.output
+        assert not bad.exists()
+    out = tmp_path / "job"
+    sets = ["--splat-set", "strategy.max_gaussians=120000"]
+    sets += ["--view-set", "paper.extra_height_fractions=[0.7]"]
+    result = runner.invoke(app, ["run", *args, str(out), *cams, "--stages", "splat_all", *sets])
+    assert result.exit_code == 2  # nothing before splat_all has run: the job is written, no stage run
+    job = Job.load(out)
+    assert job.splat_conf()["strategy"]["max_gaussians"] == 120000
+    assert job.viewpoint_conf()["paper"]["extra_height_fractions"] == [0.7]
+    assert job.splat_conf()["max_width"] == 400
