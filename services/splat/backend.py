@@ -49,6 +49,11 @@ def view_colors(
     return torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)
 
 
+def _full_size(x: torch.Tensor, ids: torch.Tensor, n: int) -> torch.Tensor:
+    """Rows of the Gaussians `ids` (M, ...) placed in n rows of zeros (differentiable in x)."""
+    return x.new_zeros(n, *x.shape[1:]).index_copy(0, ids, x)
+
+
 def rasterization(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -97,7 +102,7 @@ def rasterization(
     )
     rgb = view_colors(means, colors, viewmat, sh_degree) if "RGB" in render_mode else None
     if sub:  # full-size outputs for the caller; the rasterizer reads the 2D means through them
-        full_means2d = means2d.new_zeros(n, 2).index_copy(0, ids, means2d)
+        full_means2d = _full_size(means2d, ids, n)
         means2d = full_means2d[ids]
     d = depths[:, None]
     feats = d if rgb is None else (rgb if render_mode == "RGB" else torch.cat([rgb, d], -1))
@@ -110,9 +115,7 @@ def rasterization(
         out = torch.cat([out[..., :-1], out[..., -1:] / alphas.clamp_min(1e-10)], -1)
     if sub:
         means2d = full_means2d
-        depths = depths.detach().new_zeros(n).index_copy(0, ids, depths.detach())
-        conics = conics.detach().new_zeros(n, 3).index_copy(0, ids, conics.detach())
-        radii = radii.new_zeros(n, 2).index_copy(0, ids, radii)
+        depths, conics, radii = (_full_size(x.detach(), ids, n) for x in (depths, conics, radii))
     info = dict(means2d=means2d, radii=radii, depths=depths, conics=conics, width=width, height=height)
     info["n_cameras"] = 1
     return out, alphas, info

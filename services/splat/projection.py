@@ -45,6 +45,25 @@ def covariances(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     return M @ M.transpose(1, 2)
 
 
+def jacobian_limits(K: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, ...]:
+    """Bounds (x+, x-, y+, y-) on x/z and y/z where the projection's Jacobian is evaluated: a bit beyond
+    the frustum, as 3DGS / gsplat clamp it. 0-dim tensors of K's dtype."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    return (
+        (width - cx) / fx + 0.3 * tan_x,
+        cx / fx + 0.3 * tan_x,
+        (height - cy) / fy + 0.3 * tan_y,
+        cy / fy + 0.3 * tan_y,
+    )
+
+
+def alpha_reach(opacities: torch.Tensor) -> torch.Tensor:
+    """k = 2 ln(o / ALPHA_MIN): alpha = o exp(-q / 2) reaches ALPHA_MIN where the Mahalanobis q <= k
+    (k <= 0: never)."""
+    return 2.0 * torch.log((opacities / ALPHA_MIN).clamp_min(1e-12))
+
+
 def project_gaussians(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -72,10 +91,7 @@ def project_gaussians(
     in_depth = (z > near) & (z < far)
     zs = torch.where(in_depth, z, torch.ones_like(z))  # safe denominators for culled Gaussians
     x, y = pc[:, 0], pc[:, 1]
-    # clamp the Jacobian's evaluation point to a bit beyond the frustum (as 3DGS / gsplat do)
-    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    lim_xp, lim_xn = (width - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
-    lim_yp, lim_yn = (height - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
+    lim_xp, lim_xn, lim_yp, lim_yn = jacobian_limits(K, width, height)
     tx = zs * torch.minimum(torch.maximum(x / zs, -lim_xn), lim_xp)
     ty = zs * torch.minimum(torch.maximum(y / zs, -lim_yn), lim_yp)
     # 2D covariance J W Sigma W^T J^T = T T^T with T = J W R_q S (J: 2x3 Jacobian, W: camera rotation)
@@ -92,8 +108,7 @@ def project_gaussians(
     conics = torch.stack([c / det_s, -b / det_s, a / det_s], -1)
     means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
     with torch.no_grad():
-        # alpha = o * exp(-q/2) >= ALPHA_MIN  <=>  q <= 2 ln(o / ALPHA_MIN); the ellipse's bounding box
-        k = 2.0 * torch.log((opacities / ALPHA_MIN).clamp_min(1e-12))
+        k = alpha_reach(opacities)  # the bounding box of the ellipse q <= k
         ok = ok & (k > 0)
         k = k.clamp_min(0)
         ext = torch.stack([(k * a.clamp_min(0)).sqrt(), (k * c.clamp_min(0)).sqrt()], -1)
@@ -136,12 +151,11 @@ def frustum_candidates(
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     pc = means @ R.T + t
     z = pc[:, 2]
-    k = 2.0 * torch.log((opacities / ALPHA_MIN).clamp_min(1e-12))
+    k = alpha_reach(opacities)
     ok = (z > near) & (z < far) & (k > 0)
     zs = torch.where(ok, z, torch.ones_like(z))
-    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    lim_x = max(width - cx, cx) / fx + 0.3 * tan_x
-    lim_y = max(height - cy, cy) / fy + 0.3 * tan_y
+    lim_xp, lim_xn, lim_yp, lim_yn = jacobian_limits(K, width, height)
+    lim_x, lim_y = float(max(lim_xp, lim_xn)), float(max(lim_yp, lim_yn))
     smax = scales.max(-1).values / zs
     root_k = k.clamp_min(0).sqrt()
     ex = root_k * (fx * smax * (1 + lim_x) + math.sqrt(eps2d)) * 1.01 + 2.0
