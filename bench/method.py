@@ -2,9 +2,9 @@
 
     python bench/method.py [--preset small] [--seed 0] [--renderers gt,splat]
                            [--planners paper,ground-aware,both] [--views 2] [--max-keypoints 1024]
-                           [--matchers aliked-lightglue,sift] [--sift-keypoints 8192]
+                           [--matchers aliked-lightglue,disk-lightglue,sift] [--sift-keypoints 8192]
                            [--splat-steps 1500] [--splat-set KEY=VALUE] [--view-set KEY=VALUE]
-                           [--adopt-sfm DIR] [--adopt-splat DIR] [--out DIR]
+                           [--match-set KEY=VALUE] [--adopt-sfm DIR] [--adopt-splat DIR] [--out DIR]
 
 One aerial SfM (and one 3DGS model) is shared by every configuration: a base job runs aerial_sfm and
 train_splat, and one job per (renderer, planner) links to it and runs plan_views .. combined_sfm (the
@@ -16,8 +16,9 @@ keypoints) match files. Everything is evaluated on the co-visible pairs of the g
 within 3 px through the true depth), the combined reconstructions with `evaluate_sfm`, and the PnP
 ground-camera poses of the reducer against the true camera centres. The keypoint bound of each match file
 (services.evaluation.keypoint_bound) says how many GT-correct matches its keypoints allow at most: a
-method cannot exceed it whatever it matches. Matchers of the views: "aliked-lightglue" (--max-keypoints)
-and "sift" (--sift-keypoints, at 1600 px), each a configuration of its own (job folder suffix -sift).
+method cannot exceed it whatever it matches. Matchers of the views: "aliked-lightglue" and
+"disk-lightglue" (--max-keypoints; each with its direct baseline at that budget) and "sift"
+(--sift-keypoints, at 1600 px), each a configuration of its own (job folder suffix -MATCHER).
 """
 
 from __future__ import annotations
@@ -136,25 +137,30 @@ def pnp_accuracy(scene: Path, job: pipeline.Job) -> dict:
     }
 
 
-def direct_same_budget(scene: Path, base: pipeline.Job, out: Path) -> Path:
-    """Direct ALIKED+LightGlue on the POS pairs with midview's features (its keypoint budget)."""
+LEARNED_LABELS = {"aliked-lightglue": "ALIKED+LightGlue", "disk-lightglue": "DISK+LightGlue"}
+
+
+def direct_same_budget(scene: Path, out: Path, matcher: str, max_keypoints: int) -> Path:
+    """Direct matching (a learned matcher of the views) on the POS pairs with midview's features: the
+    same extractor and keypoint budget as the views' matching."""
     from services import pairs as pairs_mod
     from services.matching import direct
-    from services.matching.views import feature_conf
+    from services.matching import views as mv
     from shared.images import list_images
 
-    path = out / "direct-aliked-lightglue-same-budget.h5"
+    path = out / f"direct-{matcher}-same-budget.h5"
     if path.exists():
         return path
     names = list_images(scene / "images")
     pairs = pairs_mod.get_pairs(pairs_mod.confs["pos"], names, scene / "pos.csv", scene / "cameras.json")
-    fconf = feature_conf(base.match_conf())
-    conf = {**direct.confs["aliked-lightglue"], "name": "direct-alg-same-budget", "features": fconf}
+    fconf = mv.feature_conf({**mv.confs[matcher], "max_keypoints": max_keypoints})
+    conf = {**direct.confs[matcher], "name": f"direct-{matcher}-same-budget", "features": fconf}
     cache = out / "direct-features"
     cache.mkdir(parents=True, exist_ok=True)
-    shared = base.features_path
-    if shared.exists() and not (cache / shared.name).exists():
-        shutil.copy2(shared, cache / shared.name)  # reuse midview's cached features, extract the rest
+    for job_dir in sorted(out.glob("*/")):  # reuse the views' cached features, extract the rest
+        shared = job_dir / "features" / f"{fconf['output']}.h5"
+        if shared.exists() and not (cache / shared.name).exists():
+            shutil.copy2(shared, cache / shared.name)
     tmp = path.with_suffix(".tmp.h5")
     direct.main(conf, scene, pairs, tmp, cache)
     tmp.replace(path)
@@ -177,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--matchers",
         default="aliked-lightglue",
-        help="comma-separated: aliked-lightglue, sift (views' matcher)",
+        help="comma-separated: aliked-lightglue, disk-lightglue, sift (views' matcher)",
     )
     ap.add_argument("--sift-keypoints", type=int, default=8192, help="SIFT features per image (matcher sift)")
     ap.add_argument("--splat-steps", type=int, default=1500)
@@ -195,6 +201,14 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         metavar="KEY=VALUE",
         help="viewpoint conf entry (services.viewpoints confs), repeatable: --view-set ground.max_width=640",
+    )
+    ap.add_argument(
+        "--match-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="matching conf entry (services.matching.views confs), repeatable:"
+        " --match-set render_max_keypoints=2048",
     )
     ap.add_argument("--torch-threads", type=int, default=1)
     ap.add_argument("--no-sfm", action="store_true", help="skip the combined reconstructions")
@@ -227,6 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         "seed": args.seed,
     }
     # the aerial SfM of services.sfm.confs["sift-fast"] (SIFT at 1024 px, exhaustive matching)
+    from services.matching.views import confs as match_confs
     from services.splat import confs as splat_confs
     from services.splat.train import parse_overrides
     from services.viewpoints import confs as view_confs
@@ -234,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     settings = {
         "splat": parse_overrides(args.splat_set, splat_confs["fast"]),
         "viewpoints": parse_overrides(args.view_set, view_confs["both"]),
+        "matching": parse_overrides(args.match_set, match_confs["aliked-lightglue"]),
         "torch_threads": args.torch_threads,
         "scene": str(scene),
         "sfm": {"output": "sfm-sift-fast", "features": {"max_image_size": 1024, "max_num_features": 4096}},
@@ -270,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in renderers:
             for p in planners:
                 name = config_name(r, p, mt)
-                keypoints = args.max_keypoints if mt == "aliked-lightglue" else args.sift_keypoints
+                keypoints = args.sift_keypoints if mt == "sift" else args.max_keypoints
                 job = make_job(
                     out / name,
                     scene,
@@ -307,7 +323,9 @@ def main(argv: list[str] | None = None) -> int:
         if (bl / f).exists():
             files[label] = bl / f
     t0 = time.perf_counter()
-    files[f"direct ALIKED+LightGlue ({args.max_keypoints})"] = direct_same_budget(scene, base, out)
+    for mt in ["aliked-lightglue", *(m for m in matchers if m not in ("aliked-lightglue", "sift"))]:
+        label = f"direct {LEARNED_LABELS[mt]} ({args.max_keypoints})"
+        files[label] = direct_same_budget(scene, out, mt, args.max_keypoints)
     timings["direct same budget"] = time.perf_counter() - t0
     for (r, p, mt), job in jobs.items():
         files[f"midview {config_name(r, p, mt).replace('-', ' ', 1)}"] = job.dir("transfer") / "matches.h5"
@@ -406,7 +424,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def config_name(renderer: str, planner: str, matcher: str) -> str:
-    """The job folder of a configuration: RENDERER-PLANNER, with -sift for the SIFT matcher."""
+    """The job folder of a configuration: RENDERER-PLANNER, with -MATCHER for a matcher other than
+    ALIKED+LightGlue."""
     return f"{renderer}-{planner}" + ("" if matcher == "aliked-lightglue" else f"-{matcher}")
 
 

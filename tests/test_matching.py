@@ -11,6 +11,7 @@ from cli import match as match_cli
 from services import features, pairs
 from services.colmap_model import Camera, write_cameras_json
 from services.matching import direct
+from services.matching import views as mviews
 from services.pos import LocalFrame, PosRecord, write_pos_csv, ypr_to_matrix
 from shared.matchfile import MatchFile
 
@@ -68,15 +69,17 @@ def test_sift_keypoints_follow_colmap_convention(resize):
     assert d.min() < 0.3
 
 
+@pytest.mark.parametrize("name", ["aliked", "disk"])
 @pytest.mark.parametrize("resize", [1024, 320])
-def test_aliked_keypoints_follow_colmap_convention(resize):
-    """Checkerboard corners lie at multiples of the square size in COLMAP coordinates. ALIKED has a
-    content-dependent bias, which cancels over the four flips of the image; a convention error does not."""
+def test_learned_keypoints_follow_colmap_convention(name, resize):
+    """Checkerboard corners lie at multiples of the square size in COLMAP coordinates. ALIKED and DISK
+    have a content-dependent bias, which cancels over the four flips of the image; a convention error
+    does not."""
     w, h, sq = 640, 480, 20
     yy, xx = np.mgrid[0:h, 0:w]
     cells = np.random.default_rng(0).integers(0, 2, (h // sq + 1, w // sq + 1))
     img = np.repeat((cells[yy // sq, xx // sq] * 200 + 25).astype(np.uint8)[..., None], 3, 2)
-    conf = {**features.confs["aliked"], "preprocessing": {"grayscale": False, "resize_max": resize}}
+    conf = {**features.confs[name], "preprocessing": {"grayscale": False, "resize_max": resize}}
     offsets = []
     for fx, fy in ((0, 0), (1, 0), (0, 1), (1, 1)):
         im = np.ascontiguousarray(img[:: -1 if fy else 1, :: -1 if fx else 1])
@@ -109,7 +112,7 @@ def test_features_cached(scene, tmp_path, monkeypatch):
 
 
 # -- matching --------------------------------------------------------------------------------------
-@pytest.mark.parametrize("method", ["sift", "aliked-lightglue"])
+@pytest.mark.parametrize("method", ["sift", "aliked-lightglue", "disk-lightglue"])
 def test_direct_matching_recovers_homography(scene, tmp_path, method):
     out = tmp_path / f"{method}.h5"
     pair = ("aerial/A1.jpg", "ground/G1.jpg")
@@ -127,6 +130,26 @@ def test_direct_matching_recovers_homography(scene, tmp_path, method):
     assert pm.inliers.sum() >= 0.8 * len(pm.matches)
     assert (err[pm.inliers] < 3.0).mean() > 0.95
     assert np.median(err[pm.inliers]) < 1.0  # the +0.5 convention holds on both sides
+
+
+@pytest.mark.parametrize("matcher", ["aliked-lightglue", "disk-lightglue"])
+def test_a_view_has_its_own_keypoint_budget(scene, tmp_path, matcher):
+    """render_max_keypoints sets the render's budget; the images keep max_keypoints (their cache)."""
+    views_dir = tmp_path / "views"
+    views_dir.mkdir()
+    cv2.imwrite(str(views_dir / "v0.png"), cv2.imread(str(scene / "images/aerial/A1.jpg")))
+    view = {"name": "v0", "aerial": ["aerial/A1.jpg"], "ground": ["ground/G1.jpg"]}
+    conf = {**mviews.confs[matcher], "max_keypoints": 128, "render_max_keypoints": 512}
+    cache = tmp_path / "feats.h5"
+    mviews.prepare_features(conf, scene / "images", view["aerial"] + view["ground"], cache)
+    out = mviews.match_view(conf, view, views_dir, scene / "images", cache, tmp_path / "matches")
+    with MatchFile(out) as mf:
+        assert len(mf.keypoints("views/v0.png")) == 512
+        assert len(mf.keypoints("aerial/A1.jpg")) == len(mf.keypoints("ground/G1.jpg")) == 128
+        pm = mf.get_pair("views/v0.png", "ground/G1.jpg")
+        kp0, kp1 = mf.keypoints("views/v0.png"), mf.keypoints("ground/G1.jpg")
+    err = _homography_errors(kp0[pm.matches[pm.inliers, 0]], kp1[pm.matches[pm.inliers, 1]])
+    assert pm.inliers.sum() >= 50 and (err < 3.0).mean() > 0.9
 
 
 def test_nn_ratio_mutual():
