@@ -2,7 +2,7 @@
 
     python bench/method.py [--preset small] [--seed 0] [--renderers gt,splat]
                            [--planners paper,ground-aware,both] [--views 2] [--max-keypoints 1024]
-                           [--matchers aliked-lightglue,disk-lightglue,sift] [--sift-keypoints 8192]
+                           [--matchers aliked-lightglue,sift] [--sift-keypoints 8192]
                            [--splat-steps 1500] [--splat-set KEY=VALUE] [--view-set KEY=VALUE]
                            [--match-set KEY=VALUE] [--adopt-sfm DIR] [--adopt-splat DIR] [--out DIR]
 
@@ -16,9 +16,8 @@ keypoints) match files. Everything is evaluated on the co-visible pairs of the g
 within 3 px through the true depth), the combined reconstructions with `evaluate_sfm`, and the PnP
 ground-camera poses of the reducer against the true camera centres. The keypoint bound of each match file
 (services.evaluation.keypoint_bound) says how many GT-correct matches its keypoints allow at most: a
-method cannot exceed it whatever it matches. Matchers of the views: "aliked-lightglue" and
-"disk-lightglue" (--max-keypoints; each with its direct baseline at that budget) and "sift"
-(--sift-keypoints, at 1600 px), each a configuration of its own (job folder suffix -MATCHER).
+method cannot exceed it whatever it matches. Matchers of the views: "aliked-lightglue" (--max-keypoints)
+and "sift" (--sift-keypoints, at 1600 px), each a configuration of its own (job folder suffix -sift).
 """
 
 from __future__ import annotations
@@ -137,30 +136,25 @@ def pnp_accuracy(scene: Path, job: pipeline.Job) -> dict:
     }
 
 
-LEARNED_LABELS = {"aliked-lightglue": "ALIKED+LightGlue", "disk-lightglue": "DISK+LightGlue"}
-
-
-def direct_same_budget(scene: Path, out: Path, matcher: str, max_keypoints: int) -> Path:
-    """Direct matching (a learned matcher of the views) on the POS pairs with midview's features: the
-    same extractor and keypoint budget as the views' matching."""
+def direct_same_budget(scene: Path, base: pipeline.Job, out: Path) -> Path:
+    """Direct ALIKED+LightGlue on the POS pairs with midview's features (its keypoint budget)."""
     from services import pairs as pairs_mod
     from services.matching import direct
-    from services.matching import views as mv
+    from services.matching.views import feature_conf
     from shared.images import list_images
 
-    path = out / f"direct-{matcher}-same-budget.h5"
+    path = out / "direct-aliked-lightglue-same-budget.h5"
     if path.exists():
         return path
     names = list_images(scene / "images")
     pairs = pairs_mod.get_pairs(pairs_mod.confs["pos"], names, scene / "pos.csv", scene / "cameras.json")
-    fconf = mv.feature_conf({**mv.confs[matcher], "max_keypoints": max_keypoints})
-    conf = {**direct.confs[matcher], "name": f"direct-{matcher}-same-budget", "features": fconf}
+    fconf = feature_conf(base.match_conf())
+    conf = {**direct.confs["aliked-lightglue"], "name": "direct-alg-same-budget", "features": fconf}
     cache = out / "direct-features"
     cache.mkdir(parents=True, exist_ok=True)
-    for job_dir in sorted(out.glob("*/")):  # reuse the views' cached features, extract the rest
-        shared = job_dir / "features" / f"{fconf['output']}.h5"
-        if shared.exists() and not (cache / shared.name).exists():
-            shutil.copy2(shared, cache / shared.name)
+    shared = base.features_path
+    if shared.exists() and not (cache / shared.name).exists():
+        shutil.copy2(shared, cache / shared.name)  # reuse midview's cached features, extract the rest
     tmp = path.with_suffix(".tmp.h5")
     direct.main(conf, scene, pairs, tmp, cache)
     tmp.replace(path)
@@ -183,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--matchers",
         default="aliked-lightglue",
-        help="comma-separated: aliked-lightglue, disk-lightglue, sift (views' matcher)",
+        help="comma-separated: aliked-lightglue, sift (views' matcher)",
     )
     ap.add_argument("--sift-keypoints", type=int, default=8192, help="SIFT features per image (matcher sift)")
     ap.add_argument("--splat-steps", type=int, default=1500)
@@ -286,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in renderers:
             for p in planners:
                 name = config_name(r, p, mt)
-                keypoints = args.sift_keypoints if mt == "sift" else args.max_keypoints
+                keypoints = args.max_keypoints if mt == "aliked-lightglue" else args.sift_keypoints
                 job = make_job(
                     out / name,
                     scene,
@@ -323,9 +317,7 @@ def main(argv: list[str] | None = None) -> int:
         if (bl / f).exists():
             files[label] = bl / f
     t0 = time.perf_counter()
-    for mt in ["aliked-lightglue", *(m for m in matchers if m not in ("aliked-lightglue", "sift"))]:
-        label = f"direct {LEARNED_LABELS[mt]} ({args.max_keypoints})"
-        files[label] = direct_same_budget(scene, out, mt, args.max_keypoints)
+    files[f"direct ALIKED+LightGlue ({args.max_keypoints})"] = direct_same_budget(scene, base, out)
     timings["direct same budget"] = time.perf_counter() - t0
     for (r, p, mt), job in jobs.items():
         files[f"midview {config_name(r, p, mt).replace('-', ' ', 1)}"] = job.dir("transfer") / "matches.h5"
@@ -424,8 +416,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def config_name(renderer: str, planner: str, matcher: str) -> str:
-    """The job folder of a configuration: RENDERER-PLANNER, with -MATCHER for a matcher other than
-    ALIKED+LightGlue."""
+    """The job folder of a configuration: RENDERER-PLANNER, with -sift for the SIFT matcher."""
     return f"{renderer}-{planner}" + ("" if matcher == "aliked-lightglue" else f"-{matcher}")
 
 

@@ -8,7 +8,7 @@ import typer
 
 app = typer.Typer(help="Match aerial and ground images; export matches to COLMAP.", no_args_is_help=True)
 
-METHODS = ("sift", "aliked-lightglue", "disk-lightglue")
+METHODS = ("sift", "aliked-lightglue")
 PAIRS = ("all", "pos")
 
 

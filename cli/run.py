@@ -108,7 +108,7 @@ def run(
     cameras: Path | None = typer.Option(None, "--cameras", help="cameras.json (intrinsics per set)"),
     view_planner: str = typer.Option("both", help="paper, ground-aware or both (both: best, most views)"),
     views_per_ground_image: int = typer.Option(2, help="intermediate views per ground image"),
-    matcher: str = typer.Option("aliked-lightglue", help="aliked-lightglue, disk-lightglue or sift"),
+    matcher: str = typer.Option("aliked-lightglue", help="aliked-lightglue or sift"),
     sfm_features: str = typer.Option("sift", help="aerial SfM features: sift or aliked"),
     splat_steps: int = typer.Option(3000, help="3DGS training steps"),
     splat_max_width: int = typer.Option(400, help="3DGS training image width"),

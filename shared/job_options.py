@@ -57,7 +57,7 @@ class JobOptions(BaseModel):
     sfm_features: Literal["sift", "aliked"] = Field(
         "sift", description="Local features of the aerial structure-from-motion"
     )
-    matcher: Literal["aliked-lightglue", "disk-lightglue", "sift"] = Field(
+    matcher: Literal["aliked-lightglue", "sift"] = Field(
         "aliked-lightglue", description="Matcher between rendered views and the aerial/ground images"
     )
     view_planner: Literal["paper", "ground-aware", "both"] = Field(

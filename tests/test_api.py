@@ -512,7 +512,7 @@ def test_job_options_listing(api_env) -> None:
         "minimum": 1,
         "maximum": 16,
     }
-    assert set(opts["matcher"]["choices"]) == {"aliked-lightglue", "disk-lightglue", "sift"}
+    assert set(opts["matcher"]["choices"]) == {"aliked-lightglue", "sift"}
     assert set(opts["view_planner"]["choices"]) == {"paper", "ground-aware", "both"}
     assert all(o["help"] for o in opts.values())
     assert r.json()["json_schema"]["additionalProperties"] is False

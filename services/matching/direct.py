@@ -36,11 +36,6 @@ confs: dict[str, dict[str, Any]] = {
         "matcher": {"name": "lightglue", "features": "aliked"},
         "ransac": RANSAC,
     },
-    "disk-lightglue": {
-        "features": "disk",
-        "matcher": {"name": "lightglue", "features": "disk"},
-        "ransac": RANSAC,
-    },
 }
 
 Features = dict[str, np.ndarray]

@@ -37,26 +37,18 @@ confs: dict[str, dict[str, Any]] = {
         "features": "aliked",
         "max_keypoints": None,  # None: the feature conf's; else overrides it for renders and images
         "render_max_keypoints": None,  # None: max_keypoints; else the renders' own keypoint budget
+        "render_detection_threshold": None,  # None: the extractor's; ALIKED: -1 keeps the top-k always
         "resize_max": None,  # None: the feature conf's
         "matcher": {"name": "lightglue", "features": "aliked"},
         "ransac": dict(direct.RANSAC),
         "min_depth_fraction": 0.0,  # skip renders with less valid depth than this (0: never)
-    },
-    "disk-lightglue": {
-        "name": "views-disk-lightglue",
-        "features": "disk",
-        "max_keypoints": None,
-        "render_max_keypoints": None,
-        "resize_max": None,
-        "matcher": {"name": "lightglue", "features": "disk"},
-        "ransac": dict(direct.RANSAC),
-        "min_depth_fraction": 0.0,
     },
     "sift": {
         "name": "views-sift",
         "features": "sift",
         "max_keypoints": None,
         "render_max_keypoints": None,
+        "render_detection_threshold": None,
         "resize_max": None,
         "matcher": {"name": "nn-ratio", "ratio": 0.8, "mutual": True},
         "ransac": dict(direct.RANSAC),
@@ -78,7 +70,7 @@ def feature_conf(conf: dict[str, Any]) -> dict[str, Any]:
     fconf = json.loads(json.dumps(features_mod.confs[f] if isinstance(f, str) else f))
     tags = []
     if conf.get("max_keypoints"):
-        key = "max_num_keypoints" if fconf["model"]["name"] in features_mod.LEARNED else "max_num_features"
+        key = "max_num_keypoints" if fconf["model"]["name"] == "aliked" else "max_num_features"
         fconf["model"][key] = int(conf["max_keypoints"])
         tags.append(f"k{int(conf['max_keypoints'])}")
     if conf.get("resize_max"):
@@ -86,6 +78,18 @@ def feature_conf(conf: dict[str, Any]) -> dict[str, Any]:
         tags.append(f"r{int(conf['resize_max'])}")
     if tags:
         fconf["output"] = fconf["output"] + "-" + "-".join(tags)
+    return fconf
+
+
+def render_feature_conf(conf: dict[str, Any]) -> dict[str, Any]:
+    """The feature conf of the renders: the images' with the render_* entries of conf applied."""
+    fconf = feature_conf(
+        {**conf, "max_keypoints": conf.get("render_max_keypoints") or conf.get("max_keypoints")}
+    )
+    if conf.get("render_detection_threshold") is not None:
+        if fconf["model"]["name"] != "aliked":
+            raise ValueError("render_detection_threshold applies to ALIKED only")
+        fconf["model"]["detection_threshold"] = float(conf["render_detection_threshold"])
     return fconf
 
 
@@ -161,8 +165,7 @@ def match_view(
         logger.debug("%s: up to date", out)
         return out
     fconf = feature_conf(conf)
-    render_budget = conf.get("render_max_keypoints") or conf.get("max_keypoints")
-    rconf = feature_conf({**conf, "max_keypoints": render_budget})
+    rconf = render_feature_conf(conf)
     t0 = time.perf_counter()
     image = read_image(render_path, grayscale=rconf["preprocessing"].get("grayscale", False))
     fr = features_mod.extract(rconf, image)
