@@ -137,6 +137,13 @@ def run(
         metavar="KEY=VALUE",
         help="viewpoint conf entry (services.viewpoints), repeatable: --view-set paper.max_width=768",
     ),
+    match_set: list[str] = typer.Option(
+        [],
+        "--match-set",
+        metavar="KEY=VALUE",
+        help="matching conf entry (services.matching.views, the --matcher's), repeatable:"
+        " --match-set render_detection_threshold=-1",
+    ),
 ) -> None:
     """Register ground images with aerial images through rendered intermediate views: aerial SfM, 3DGS,
     view planning and rendering, matching, transfer (OUT/transfer/matches.h5, database.db,
@@ -153,6 +160,7 @@ def run(
         _fail(f"unknown stage(s) {bad}: stages are {', '.join(STAGES)}")
     if renderer == "gt" and scene is None:
         _fail("--renderer gt needs --scene (a synthetic scene folder)")
+    from services.matching.views import confs as match_confs
     from services.splat import confs as splat_confs
     from services.splat.train import parse_overrides
     from services.viewpoints import confs as view_confs
@@ -161,9 +169,10 @@ def run(
         overrides = {
             "splat": parse_overrides(splat_set, splat_confs["fast"]),
             "viewpoints": parse_overrides(view_set, view_confs["both"]),
+            "matching": parse_overrides(match_set, match_confs.get(matcher, match_confs["aliked-lightglue"])),
         }
     except ValueError as e:
-        _fail(f"--splat-set / --view-set: {e}")
+        _fail(f"--splat-set / --view-set / --match-set: {e}")
     try:
         job = pipeline.Job.create(
             out,

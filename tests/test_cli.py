@@ -116,9 +116,9 @@ def test_run_of_a_stage_before_its_inputs_exist_says_which_stages_to_run(tiny_sc
     assert not (out / "stages" / "reduce.json").exists() and not (out / "transfer").exists()
 
 
-def test_run_takes_splat_and_view_overrides_and_rejects_bad_ones(tiny_scene, tmp_path):
-    """`midview run --splat-set/--view-set KEY=VALUE`: kept in job.json and used by the stages' confs; an
-    unknown key or a value of the wrong kind exits 2 with the reason before a job folder is made."""
+def test_run_takes_splat_view_and_match_overrides_and_rejects_bad_ones(tiny_scene, tmp_path):
+    """`midview run --splat-set/--view-set/--match-set KEY=VALUE`: kept in job.json and used by the stages'
+    confs; an unknown key or a value of the wrong kind exits 2 with the reason before a job folder is made."""
     from services.pipeline import Job
 
     s = tiny_scene
@@ -129,6 +129,8 @@ def test_run_takes_splat_and_view_overrides_and_rejects_bad_ones(tiny_scene, tmp
         (["--splat-set", "strategy.max_gausians=5"], "unknown key 'max_gausians'"),
         (["--splat-set", "strategy.max_gaussians=many"], "expected an integer"),
         (["--view-set", "paper.height=0.4"], "unknown key 'height'"),
+        (["--match-set", "render_keypoints=2048"], "unknown key 'render_keypoints'"),
+        (["--match-set", "matcher.filter_threshold=low"], "expected a number"),
     ):
         result = runner.invoke(app, ["run", *args, str(bad), *cams, *item])
         assert result.exit_code == 2, result.output
@@ -137,9 +139,12 @@ def test_run_takes_splat_and_view_overrides_and_rejects_bad_ones(tiny_scene, tmp
     out = tmp_path / "job"
     sets = ["--splat-set", "strategy.max_gaussians=120000"]
     sets += ["--view-set", "paper.extra_height_fractions=[0.7]"]
+    sets += ["--match-set", "render_detection_threshold=-1", "--match-set", "matcher.filter_threshold=0.05"]
     result = runner.invoke(app, ["run", *args, str(out), *cams, "--stages", "splat_all", *sets])
     assert result.exit_code == 2  # nothing before splat_all has run: the job is written, no stage run
     job = Job.load(out)
     assert job.splat_conf()["strategy"]["max_gaussians"] == 120000
     assert job.viewpoint_conf()["paper"]["extra_height_fractions"] == [0.7]
+    mconf = job.match_conf()
+    assert mconf["render_detection_threshold"] == -1 and mconf["matcher"]["filter_threshold"] == 0.05
     assert job.splat_conf()["max_width"] == 400

@@ -39,7 +39,8 @@ confs: dict[str, dict[str, Any]] = {
         "render_max_keypoints": None,  # None: max_keypoints; else the renders' own keypoint budget
         "render_detection_threshold": None,  # None: the extractor's; ALIKED: -1 keeps the top-k always
         "resize_max": None,  # None: the feature conf's
-        "matcher": {"name": "lightglue", "features": "aliked"},
+        # filter_threshold: LightGlue's (its default), the score a match needs to be kept
+        "matcher": {"name": "lightglue", "features": "aliked", "filter_threshold": 0.1},
         "ransac": dict(direct.RANSAC),
         "min_depth_fraction": 0.0,  # skip renders with less valid depth than this (0: never)
     },
