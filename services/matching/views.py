@@ -48,8 +48,7 @@ confs: dict[str, dict[str, Any]] = {
         "name": "views-sift",
         "features": "sift",
         "max_keypoints": None,
-        "render_max_keypoints": None,
-        "render_detection_threshold": None,
+        "render_max_keypoints": None,  # (no render_detection_threshold: SIFT has none to set)
         "resize_max": None,
         "matcher": {"name": "nn-ratio", "ratio": 0.8, "mutual": True},
         "ransac": dict(direct.RANSAC),
