@@ -235,15 +235,8 @@ def main(argv: list[str] | None = None) -> int:
         "seed": args.seed,
     }
     # the aerial SfM of services.sfm.confs["sift-fast"] (SIFT at 1024 px, exhaustive matching)
-    from services.matching.views import confs as match_confs
-    from services.splat import confs as splat_confs
-    from services.splat.train import parse_overrides
-    from services.viewpoints import confs as view_confs
-
     settings = {
-        "splat": parse_overrides(args.splat_set, splat_confs["fast"]),
-        "viewpoints": parse_overrides(args.view_set, view_confs["both"]),
-        "matching": parse_overrides(args.match_set, match_confs["aliked-lightglue"]),
+        **pipeline.parse_settings_overrides(args.splat_set, args.view_set, args.match_set),
         "torch_threads": args.torch_threads,
         "scene": str(scene),
         "sfm": {"output": "sfm-sift-fast", "features": {"max_image_size": 1024, "max_num_features": 4096}},

@@ -160,17 +160,8 @@ def run(
         _fail(f"unknown stage(s) {bad}: stages are {', '.join(STAGES)}")
     if renderer == "gt" and scene is None:
         _fail("--renderer gt needs --scene (a synthetic scene folder)")
-    from services.matching.views import confs as match_confs
-    from services.splat import confs as splat_confs
-    from services.splat.train import parse_overrides
-    from services.viewpoints import confs as view_confs
-
     try:
-        overrides = {
-            "splat": parse_overrides(splat_set, splat_confs["fast"]),
-            "viewpoints": parse_overrides(view_set, view_confs["both"]),
-            "matching": parse_overrides(match_set, match_confs.get(matcher, match_confs["aliked-lightglue"])),
-        }
+        overrides = pipeline.parse_settings_overrides(splat_set, view_set, match_set, matcher)
     except ValueError as e:
         _fail(f"--splat-set / --view-set / --match-set: {e}")
     try:

@@ -65,6 +65,23 @@ DEFAULT_SETTINGS: dict[str, Any] = {
 }
 
 
+def parse_settings_overrides(
+    splat: list[str], viewpoints: list[str], matching: list[str], matcher: str = "aliked-lightglue"
+) -> dict[str, dict]:
+    """`KEY=VALUE` strings of the 3DGS, viewpoint and matching (the matcher's) confs -> the job settings
+    that override them (services.splat.train.parse_overrides: ValueError with the reason)."""
+    from services.matching.views import confs as match_confs
+    from services.splat import confs as splat_confs
+    from services.splat.train import parse_overrides
+    from services.viewpoints import confs as view_confs
+
+    return {
+        "splat": parse_overrides(splat, splat_confs["fast"]),
+        "viewpoints": parse_overrides(viewpoints, view_confs["both"]),
+        "matching": parse_overrides(matching, match_confs.get(matcher, match_confs["aliked-lightglue"])),
+    }
+
+
 def _merge(base: dict, over: dict | None) -> dict:
     out = json.loads(json.dumps(base))
     for k, v in (over or {}).items():
