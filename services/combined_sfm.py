@@ -11,10 +11,12 @@ Database (out/database.db), a copy of the aerial SfM database with:
   two-view geometries.
 
 Input model (out/input): the aerial model rebuilt with the extended keypoints, the ground images whose
-PnP pose the reducer accepted (registered at that pose), and one 3D point per transferred track (the
-rendered-depth point, observed by its aerial and ground keypoints). pycolmap's incremental mapper
-continues from it (`input_path`): it registers the other ground images through these points,
-triangulates, and bundle-adjusts everything. The result is georeferenced like the aerial model (a
+PnP pose the reducer accepted (registered at that pose), and one 3D point per transferred track,
+triangulated from its observations in registered images; the keypoints of the other ground images link
+a track's aerial observations without being part of it. pycolmap's incremental mapper continues from it
+(`input_path`): it registers the other ground images through these points, triangulates, and
+bundle-adjusts everything; ground images it registered but the model leaves uncertain (their own points
+do not count for more than the aerial points that place them) or far from their POS are dropped. The result is georeferenced like the aerial model (a
 similarity to the aerial POS in the aerial model's ENU frame) and written to out/sparse with
 report.json (NRI per set, N3P, reprojection error, ground camera positions against the PnP and POS).
 """
@@ -63,10 +65,11 @@ default_conf: dict[str, Any] = {
     "add_pnp_images": True,
     "add_max_px": 4.0,  # such an observation must reproject within this (ground pixels)
     "add_min_angle_deg": 2.0,  # a new aerial-ground point must be seen under this angle at least
-    # ground images the mapper registered itself (not at an accepted PnP pose) are dropped when their
-    # observations leave the camera centre this uncertain (services.pose_uncertainty; None: kept), or
-    # when their pose disagrees with their POS (the reducer's limits)
-    "max_position_std_m": 0.25,
+    # ground images the mapper registered itself (not at an accepted PnP pose) are dropped when the
+    # model leaves their camera centre this uncertain (standard deviation along the worst direction from
+    # the bundle adjustment's covariance, pixel noise at least 1 px: services.pose_uncertainty.
+    # joint_position_stds; None: kept), or when their pose disagrees with their POS (the reducer's limits)
+    "max_position_std_m": 0.5,
     "pos_limits": None,  # those POS limits: the reducer's conf["pnp"] (None: services.transfer's defaults)
     "mapping": {
         "min_num_matches": 15,  # pairs with fewer matches are ignored by the mapper
@@ -598,36 +601,55 @@ def drop_ill_determined(
     pnp_conf: dict | None = None,
 ) -> dict[str, str]:
     """Deregister the ground images the mapper registered (not those at an accepted PnP pose, checked by
-    the reducer) whose observations determine their centre worse than `max_std` metres (standard
-    deviation along the worst direction, pixel noise their RMS residual, at least 1 px), or, with
-    `priors` and `pnp_conf` (the reducer's POS limits, services.transfer), whose pose disagrees with
-    their POS: a repeated facade can register an image far from where it was taken. Returns
-    {name: reason}."""
-    from services.pose_uncertainty import fit_position_std
+    the reducer) whose pose disagrees with their POS (with `priors` and `pnp_conf`, the reducer's POS
+    limits, services.transfer: a repeated facade can register an image far from where it was taken), or
+    whose centre the model determines worse than `max_std` metres: the standard deviation along the
+    worst direction from the covariance of the model's bundle adjustment with the other images held
+    (services.pose_uncertainty.joint_position_stds), so a run of ground images tied by their own points
+    but placed by a few ill-spread aerial points is judged by those. Dropping an image can leave the
+    others less determined: repeated until none is dropped. Returns {name: reason}."""
+    from services.pose_uncertainty import fit_position_std, joint_position_stds
     from services.transfer import prior_agreement
 
-    out = {}
-    for im in list(rec.images.values()):
-        if not im.name.startswith("ground/") or not im.has_pose or pnp.get(im.name, {}).get("accepted"):
-            continue
+    def candidates() -> list[pycolmap.Image]:
+        return [
+            im
+            for im in rec.images.values()
+            if im.name.startswith("ground/") and im.has_pose and not pnp.get(im.name, {}).get("accepted")
+        ]
+
+    def pose_of(im: pycolmap.Image) -> Pose:
         m = np.asarray(im.cam_from_world().matrix())
-        pose = Pose(m[:, :3].copy(), m[:, 3].copy())
-        reasons = []
-        if max_std:
-            obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
-            std = fit_position_std(
-                pose,
-                np.asarray(im.camera.calibration_matrix()),
-                np.array([o[0] for o in obs], float).reshape(-1, 2),
-                np.array([o[1] for o in obs], float).reshape(-1, 3),
-            )
-            if std > max_std:
-                reasons.append(f"position ill-determined (std {std:.2f} m)")
-        if priors and pnp_conf and im.name in priors:
-            reasons += prior_agreement(pose, priors[im.name], (prior_std or {}).get(im.name), pnp_conf)[2]
-        if reasons:
+        return Pose(m[:, :3].copy(), m[:, 3].copy())
+
+    out: dict[str, str] = {}
+    if priors and pnp_conf:
+        for im in candidates():
+            if im.name in priors:
+                std = (prior_std or {}).get(im.name)
+                reasons = prior_agreement(pose_of(im), priors[im.name], std, pnp_conf)[2]
+                if reasons:
+                    rec.deregister_frame(im.frame_id)
+                    out[im.name] = "; ".join(reasons)
+    while max_std:
+        ims = candidates()
+        stds = joint_position_stds(rec, [im.image_id for im in ims]) if ims else {}
+        if stds is None:  # a singular problem: each image with its own points held fixed
+            stds = {}
+            for im in ims:
+                obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
+                stds[im.image_id] = fit_position_std(
+                    pose_of(im),
+                    np.asarray(im.camera.calibration_matrix()),
+                    np.array([o[0] for o in obs], float).reshape(-1, 2),
+                    np.array([o[1] for o in obs], float).reshape(-1, 3),
+                )
+        bad = [im for im in ims if stds.get(im.image_id, 0.0) > max_std]
+        for im in bad:
             rec.deregister_frame(im.frame_id)
-            out[im.name] = "; ".join(reasons)
+            out[im.name] = f"position ill-determined (std {stds[im.image_id]:.2f} m)"
+        if not bad:
+            break
     return out
 
 
@@ -737,8 +759,11 @@ def _seed_tracks(
     kps: dict[int, np.ndarray],
     registered: set[str],
 ) -> int:
-    """One 3D point per connected set of transferred observations whose images are registered, placed
-    by a linear triangulation of its observations (at least two images, one aerial and one ground)."""
+    """One 3D point per connected set of transferred observations, placed by a linear triangulation of
+    its observations in registered images (at least two) and observed by those. The transferred matches
+    of a ground image not registered yet link its keypoint to the aerial keypoints of one point: they
+    join the point's aerial observations (the reducer's track) without being part of its track, so
+    that the mapper sees that image's correspondences to the point and can register it."""
     parent: dict[tuple[int, int], tuple[int, int]] = {}
 
     def find(x):
@@ -747,8 +772,9 @@ def _seed_tracks(
             x = parent[x]
         return x
 
+    reg_ids = {ids[n] for n in registered if n in ids}
     for a, g, m in ag:
-        if a not in registered or g not in registered:
+        if a not in registered:
             continue
         for ia, ig in m:
             u, v = (ids[a], int(ia) + offsets[a]), (ids[g], int(ig))
@@ -760,10 +786,12 @@ def _seed_tracks(
         groups.setdefault(find(x), []).append(x)
     n = 0
     for root in sorted(groups):
-        obs = sorted(groups[root])
-        img_ids = [i for i, _ in obs]
-        if len(set(img_ids)) != len(img_ids) or len(obs) < 2:
+        members = sorted(groups[root])
+        if len({i for i, _ in members}) != len(members):
             continue  # two keypoints of one image in a track: inconsistent, skip it
+        obs = [(i, k) for i, k in members if i in reg_ids]
+        if len(obs) < 2 or not any(rec.images[i].name.startswith("aerial/") for i, _ in obs):
+            continue
         X = _triangulate(rec, obs, kps)
         if X is None:
             continue

@@ -12,6 +12,7 @@ standard deviation of the camera centre along its worst direction.
 from __future__ import annotations
 
 import numpy as np
+import pycolmap
 
 from services.colmap_model import Pose
 
@@ -75,3 +76,62 @@ def fit_position_std(
     uv, _ = pose.project(K, X)
     sigma = max(float(np.sqrt(np.mean(np.sum((uv - np.asarray(kp, float)) ** 2, 1)))), min_sigma_px)
     return position_std(pose, K, X, sigma)
+
+
+def joint_position_stds(
+    rec: pycolmap.Reconstruction, image_ids: set[int] | list[int], min_sigma_px: float = 1.0
+) -> dict[int, float] | None:
+    """Standard deviation (m, along the least determined direction) of the centres of the registered
+    images `image_ids` of a reconstruction, from the covariance of its bundle adjustment with every other
+    registered image's pose and all intrinsics held constant, the 3D points free.
+
+    Unlike `position_std`, which holds an image's points fixed, this counts what the points themselves
+    are worth: a run of ground images tied together by their own points but placed by a few ill-spread
+    2D-3D correspondences is as uncertain as those correspondences leave it, however many points its
+    images share. The pixel noise of each image is its RMS reprojection error, at least min_sigma_px.
+    Returns {image_id: std}, or None when the covariance cannot be computed (a singular problem).
+    """
+    free = {int(i) for i in image_ids if int(i) in rec.images and rec.images[int(i)].has_pose}
+    if not free:
+        return {}
+    rec = pycolmap.Reconstruction(rec)
+    rec.tear_down()  # a copy without the unregistered images (the covariance needs every frame posed)
+    for pid in [pid for pid, p in rec.points3D.items() if p.track.length() < 2]:
+        rec.delete_point3D(pid)  # a point seen once adds nothing where points are free
+    cfg = pycolmap.BundleAdjustmentConfig()
+    for iid, im in rec.images.items():
+        if not im.has_pose:
+            continue
+        cfg.add_image(iid)
+        if iid not in free:
+            cfg.set_constant_rig_from_world_pose(im.frame_id)
+    for cid in rec.cameras:
+        cfg.set_constant_cam_intrinsics(cid)
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = opts.refine_extra_params = opts.refine_principal_point = False
+    opts.print_summary = False
+    try:
+        ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
+        cov = pycolmap.estimate_ba_covariance(
+            pycolmap.BACovarianceOptions(params=pycolmap.BACovarianceOptionsParams.POSES), rec, ba
+        )
+    except ValueError:  # COLMAP's checks: an image with no observation left, ...
+        return None
+    if cov is None:
+        return None
+    out = {}
+    for iid in sorted(free):
+        im = rec.images[iid]
+        c = cov.get_cam_cov_from_world(iid)  # tangent space of cam_from_world: [rotation, translation]
+        if c is None or np.asarray(c).shape != (6, 6) or not np.isfinite(c).all():
+            out[iid] = float("inf")
+            continue
+        c_world = pycolmap.get_covariance_for_inverse(im.cam_from_world(), np.asarray(c))
+        res = [
+            np.linalg.norm(np.asarray(uv) - p.xy)
+            for p in im.points2D
+            if p.has_point3D() and (uv := im.project_point(rec.points3D[p.point3D_id].xyz)) is not None
+        ]
+        sigma = max(float(np.sqrt(np.mean(np.square(res)))) if res else 0.0, min_sigma_px)
+        out[iid] = sigma * float(np.sqrt(max(np.linalg.eigvalsh(c_world[3:, 3:]).max(), 0.0)))
+    return out

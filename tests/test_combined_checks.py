@@ -101,7 +101,8 @@ def test_mapper_registrations_far_from_their_pos_are_dropped():
             rec.add_point3D(X[k], pycolmap.Track([pycolmap.TrackElement(i, k)]), np.zeros(3, np.uint8))
     priors = {n: Pose.from_center(p.R.T, p.center) for n, p in true.items()}
     priors["ground/G0001.jpg"] = Pose.from_center(true["ground/G0001.jpg"].R.T, np.array([4.0, 20.0, 1.6]))
-    dropped = drop_ill_determined(rec, {}, 0.25, priors, {n: STD for n in true}, PNP_CONF)
+    # (no uncertainty check: the points here are seen by one image each, the POS check alone)
+    dropped = drop_ill_determined(rec, {}, None, priors, {n: STD for n in true}, PNP_CONF)
     assert list(dropped) == ["ground/G0001.jpg"] and "from the POS" in dropped["ground/G0001.jpg"]
     assert rec.find_image_with_name("ground/G0000.jpg").has_pose
     assert not rec.find_image_with_name("ground/G0001.jpg").has_pose
@@ -143,3 +144,126 @@ def test_the_report_says_why_a_ground_image_is_not_registered():
     assert rep["NRI"]["ground"] == "1/3" and rep["ground"][g0]["registered"]
     assert "the largest 264 matches" in rep["ground"][g1]["reason"]
     assert "no verified aerial-ground or ground-ground pair of at least 15" in rep["ground"][g2]["reason"]
+
+
+def _anchored_street(patch: bool, seed: int = 0) -> tuple[pycolmap.Reconstruction, dict[str, int]]:
+    """Three ground images 4 m apart tied by 300 facade points they share (no aerial view of those) and
+    placed by 40 points two fixed aerial cameras see too: on a 1 m patch of the facade (`patch`) or
+    spread over it. Exact keypoints. Returns the model and {name: image id}."""
+    rng = np.random.default_rng(seed)
+    aerial_cam = Camera("PINHOLE", 1600, 1200, [1300.0, 1300.0, 800.0, 600.0])
+    cams = {
+        "aerial/A0000.jpg": (aerial_cam, look_at(np.array([-10.0, -25.0, 45.0]), np.array([4.0, 10.0, 3.0]))),
+        "aerial/A0001.jpg": (aerial_cam, look_at(np.array([20.0, -25.0, 45.0]), np.array([4.0, 10.0, 3.0]))),
+    }
+    cams.update({n: (CAM, p) for n, p in _street(3).items()})
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(aerial_cam.to_pycolmap(1))
+    rec.add_camera_with_trivial_rig(CAM.to_pycolmap(2))
+    if patch:
+        anchors = np.stack([rng.uniform(0, 1, 40), np.full(40, 10.0), rng.uniform(2, 3, 40)], 1)
+    else:
+        anchors = np.stack([rng.uniform(-3, 3, 40), np.full(40, 10.0), rng.uniform(0.5, 6, 40)], 1)
+    shared = np.stack([rng.uniform(-2, 11, 300), np.full(300, 10.0), rng.uniform(0.5, 6, 300)], 1)
+    views = {n: [] for n in cams}  # (keypoint, point index)
+    points = [*anchors, *shared]
+    for j in range(len(anchors)):
+        for n in cams:
+            views[n].append(j)
+    for j in range(len(anchors), len(points)):
+        for n in sorted(n for n in cams if n.startswith("ground/")):
+            views[n].append(j)
+    ids = {}
+    tracks: dict[int, list] = {}
+    for i, (name, (cam, pose)) in enumerate(sorted(cams.items()), start=1):
+        P = np.array([points[j] for j in views[name]])
+        uv, z = pose.project(cam.K, P)
+        ok = (z > 0) & (uv[:, 0] > 0) & (uv[:, 0] < cam.width) & (uv[:, 1] > 0) & (uv[:, 1] < cam.height)
+        im = pycolmap.Image(name=name, keypoints=uv, camera_id=1 if cam is aerial_cam else 2, image_id=i)
+        rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t))
+        ids[name] = i
+        for k, j in enumerate(views[name]):
+            if ok[k]:
+                tracks.setdefault(j, []).append(pycolmap.TrackElement(i, k))
+    for j, els in sorted(tracks.items()):
+        if len(els) >= 2:
+            rec.add_point3D(points[j], pycolmap.Track(els), np.zeros(3, np.uint8))
+    return rec, ids
+
+
+def test_a_run_of_ground_images_placed_by_a_patch_is_ill_determined():
+    """services.pose_uncertainty.joint_position_stds: ground images tied by hundreds of their own points
+    but placed by a 1 m patch that the aerial images see are as uncertain as the patch leaves them (each
+    image alone, with its points held fixed, looks well determined); placed by points spread over the
+    facade they are determined, and drop_ill_determined keeps them."""
+    from services.combined_sfm import drop_ill_determined
+    from services.pose_uncertainty import fit_position_std, joint_position_stds
+
+    rec, ids = _anchored_street(patch=True)
+    ground = [ids[n] for n in sorted(ids) if n.startswith("ground/")]
+    stds = joint_position_stds(rec, ground)
+    im = rec.images[ids["ground/G0002.jpg"]]
+    obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
+    m = np.asarray(im.cam_from_world().matrix())
+    alone = fit_position_std(
+        Pose(m[:, :3], m[:, 3]), CAM.K, np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
+    )
+    assert alone < 0.1 < 1.0 < min(stds.values())
+    dropped = drop_ill_determined(rec, {}, 0.5)
+    assert sorted(dropped) == ["ground/G0000.jpg", "ground/G0001.jpg", "ground/G0002.jpg"]
+    assert all("ill-determined" in r for r in dropped.values())
+
+    rec, ids = _anchored_street(patch=False)
+    stds = joint_position_stds(rec, ground)
+    assert max(stds.values()) < 0.5
+    assert drop_ill_determined(rec, {}, 0.5) == {}
+    assert all(rec.images[i].has_pose for i in ground)
+
+
+def test_transferred_tracks_are_seeded_for_ground_images_not_registered_yet():
+    """services.combined_sfm._seed_tracks: a transferred track is triangulated from its registered
+    observations; the keypoints of a ground image the reducer did not localize link its aerial
+    observations but stay out of the track (the mapper then sees that image's 2D-3D correspondences and
+    can register it); once that image is registered its keypoints join the track."""
+    from services.combined_sfm import _seed_tracks
+
+    rng = np.random.default_rng(2)
+    aerial_cam = Camera("PINHOLE", 1600, 1200, [1300.0, 1300.0, 800.0, 600.0])
+    poses = {
+        "aerial/A0000.jpg": look_at(np.array([-10.0, -25.0, 45.0]), np.array([4.0, 10.0, 3.0])),
+        "aerial/A0001.jpg": look_at(np.array([20.0, -25.0, 45.0]), np.array([4.0, 10.0, 3.0])),
+        "ground/G0000.jpg": _street(1)["ground/G0000.jpg"],
+    }
+    X = np.stack([rng.uniform(-2, 6, 30), np.full(30, 10.0), rng.uniform(0.5, 6, 30)], 1)
+    ids = {n: i for i, n in enumerate(sorted(poses), start=1)}
+    offsets = {"aerial/A0000.jpg": 7, "aerial/A0001.jpg": 7, "ground/G0000.jpg": 0}
+    kps = {}
+    for n, p in poses.items():
+        uv, _ = p.project(CAM.K if n.startswith("ground/") else aerial_cam.K, X)
+        kps[ids[n]] = np.concatenate([np.zeros((offsets[n], 2)), uv])  # the aerial SfM keypoints first
+    m = np.stack([np.arange(30), np.arange(30)], 1)
+    ag = [("aerial/A0000.jpg", "ground/G0000.jpg", m), ("aerial/A0001.jpg", "ground/G0000.jpg", m)]
+
+    def model(registered: set[str]) -> pycolmap.Reconstruction:
+        rec = pycolmap.Reconstruction()
+        rec.add_camera_with_trivial_rig(aerial_cam.to_pycolmap(1))
+        rec.add_camera_with_trivial_rig(CAM.to_pycolmap(2))
+        for n, i in ids.items():
+            im = pycolmap.Image(
+                name=n, keypoints=kps[i], camera_id=1 if n.startswith("aerial/") else 2, image_id=i
+            )
+            pose = pycolmap.Rigid3d(pycolmap.Rotation3d(poses[n].R), poses[n].t)
+            rec.add_image_with_trivial_frame(*((im, pose) if n in registered else (im,)))
+        return rec
+
+    aerial = {"aerial/A0000.jpg", "aerial/A0001.jpg"}
+    rec = model(aerial)
+    assert _seed_tracks(rec, ids, offsets, ag, kps, aerial) == 30
+    for p in rec.points3D.values():
+        els = sorted((e.image_id, e.point2D_idx) for e in p.track.elements)
+        k = els[0][1] - 7
+        assert els == [(1, k + 7), (2, k + 7)]  # the two aerial keypoints, at the offset
+        assert np.allclose(p.xyz, X[k], atol=1e-6)
+    rec = model(aerial | {"ground/G0000.jpg"})
+    assert _seed_tracks(rec, ids, offsets, ag, kps, aerial | {"ground/G0000.jpg"}) == 30
+    assert all(p.track.length() == 3 for p in rec.points3D.values())
