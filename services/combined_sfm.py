@@ -16,9 +16,10 @@ triangulated from its observations in registered images; the keypoints of the ot
 a track's aerial observations without being part of it. pycolmap's incremental mapper continues from it
 (`input_path`): it registers the other ground images through these points, triangulates, and
 bundle-adjusts everything; ground images it registered but the model leaves uncertain (their own points
-do not count for more than the aerial points that place them) or far from their POS are dropped. The result is georeferenced like the aerial model (a
-similarity to the aerial POS in the aerial model's ENU frame) and written to out/sparse with
-report.json (NRI per set, N3P, reprojection error, ground camera positions against the PnP and POS).
+do not count for more than the aerial points that place them) or far from their POS are dropped. The
+result is georeferenced like the aerial model (a similarity to the aerial POS in the aerial model's ENU
+frame) and written to out/sparse with report.json (NRI per set, N3P, reprojection error, ground camera
+positions against the PnP and POS).
 """
 
 from __future__ import annotations
