@@ -7,6 +7,11 @@ standard deviation of the camera centre along its worst direction.
 
     std_m = position_std(pose, camera.K, X, sigma_px=1.0)
     std_m = fit_position_std(pose, camera.K, kp, X)  # pixel noise: the fit's RMS residual, >= 1 px
+
+For images of a reconstruction whose points are themselves estimated (a run of ground images tied by
+their own points), the covariance of the whole bundle adjustment tells instead:
+
+    stds = joint_position_stds(rec, image_ids)  # {image_id: std_m}, the other images held fixed
 """
 
 from __future__ import annotations
@@ -100,8 +105,6 @@ def joint_position_stds(
         rec.delete_point3D(pid)  # a point seen once adds nothing where points are free
     cfg = pycolmap.BundleAdjustmentConfig()
     for iid, im in rec.images.items():
-        if not im.has_pose:
-            continue
         cfg.add_image(iid)
         if iid not in free:
             cfg.set_constant_rig_from_world_pose(im.frame_id)
