@@ -91,6 +91,9 @@ _BASE: dict[str, Any] = {
         "views_per_ground_image": None,  # None: the conf's views_per_ground_image
         "fov_scale": 1.0,  # > 1 widens the field of view (focal length divided by it)
         "occlusion_ratio": 0.85,  # occluded: the view's depth towards the target is below this x its distance
+        # keep views that no aerial image is a candidate of: the reducer's "3d" links reach their render
+        # keypoints through the aerial points of the other views (services.transfer)
+        "keep_without_aerial": True,
     },
     "candidates": {
         "aerial": 4,  # candidate aerial images per view
@@ -611,7 +614,8 @@ def plan(scene: Scene, conf: dict) -> list[ViewSpec]:
         views += plan_ground_aware(scene, conf, n_ground)
     if planner not in ("paper", "ground-aware", "both"):
         raise ValueError(f"unknown planner {planner!r} (paper, ground-aware, both)")
-    views = [v for v in views if v.aerial and v.ground]
+    keep_bare = bool(conf["ground"]["keep_without_aerial"])
+    views = [v for v in views if v.ground and (v.aerial or (keep_bare and v.planner == "ground-aware"))]
     if conf["candidates"]["cover_aerial"]:
         added = cover_aerial(views, scene, conf)
         if added:

@@ -222,3 +222,16 @@ def test_viewpoint_overrides_take_lists_for_empty_ones():
         parse_overrides(["paper.extra_height_fractions=0.3"], vp.confs["both"])
     with pytest.raises(ValueError, match="unknown key"):
         parse_overrides(["paper.height_fractions=[0.3]"], vp.confs["both"])
+
+
+def test_ground_aware_views_without_aerial_candidates():
+    """The reducer's 3D links reach a view through the other views' aerial points: ground-aware views no
+    aerial image is a candidate of are kept (unless keep_without_aerial is off)."""
+    ground = {"ground/G0001.jpg": pose_ypr([0.0, -15.0, 1.6], 0.0, 5.0)}
+    scene = make_scene(ground)
+    for n in [n for n in scene.aerial_poses if n != "aerial/A0005.jpg"]:  # the nadir camera only
+        del scene.aerial_poses[n], scene.aerial_cameras[n]
+    conf = vp._merge(vp.confs["ground-aware"], {"views_per_ground_image": 2})
+    views = vp.plan(scene, conf)
+    assert len(views) == 2 and all(v.aerial == [] and v.ground[0] == "ground/G0001.jpg" for v in views)
+    assert vp.plan(scene, vp._merge(conf, {"ground": {"keep_without_aerial": False}})) == []
