@@ -10,16 +10,17 @@ Database (out/database.db), a copy of the aerial SfM database with:
   that share nothing) and the transferred aerial-ground matches (the reducer's verified matches), with
   two-view geometries.
 
-Input model (out/input): the aerial model rebuilt with the extended keypoints, the ground images whose
-PnP pose the reducer accepted (registered at that pose), and one 3D point per transferred track,
-triangulated from its observations in registered images; the keypoints of the other ground images link
-a track's aerial observations without being part of it. pycolmap's incremental mapper continues from it
-(`input_path`): it registers the other ground images through these points, triangulates, and
-bundle-adjusts everything; ground images it registered but the model leaves uncertain (their own points
-do not count for more than the aerial points that place them) or far from their POS are dropped. The
-result is georeferenced like the aerial model (a similarity to the aerial POS in the aerial model's ENU
-frame) and written to out/sparse with report.json (NRI per set, N3P, reprojection error, ground camera
-positions against the PnP and POS).
+Input model (out/input): the aerial model rebuilt with the extended keypoints (with `seed_pnp_poses`
+also the ground images whose PnP pose the reducer accepted, held at that pose), and one 3D point per
+transferred track, triangulated from its observations in registered images; the keypoints of the other
+ground images link a track's aerial observations without being part of it. pycolmap's incremental mapper
+continues from it (`input_path`): it registers the other ground images through these points,
+triangulates, and bundle-adjusts everything; ground images it registered but the model leaves uncertain
+(their own points do not count for more than the aerial points that place them) or far from their POS
+are dropped, and those the reducer localized are added at their PnP pose where the mapper left them out.
+The result is georeferenced like the aerial model (a similarity to the aerial POS in the aerial model's
+ENU frame) and written to out/sparse with report.json (NRI per set, N3P, reprojection error, ground
+camera positions against the PnP and POS).
 """
 
 from __future__ import annotations
@@ -58,7 +59,12 @@ default_conf: dict[str, Any] = {
         "seed": 0,
     },
     "seed_points": True,  # 3D points of the transferred tracks in the input model
-    "seed_pnp_poses": True,  # ground images with an accepted PnP pose start registered ...
+    # ground images with an accepted PnP pose start registered, held at that pose ... (off: the mapper
+    # registers them like the others and they are judged like the others; those it leaves out or drops
+    # are added at their PnP pose, see add_pnp_images. A PnP pose on points triangulated through a
+    # CPU-trained 3DGS's blurry renders can be 0.8 m off within its 0.25 m std, and held fixed it drags
+    # the chain of ground images the mapper registers from it: small-walk, README)
+    "seed_pnp_poses": False,
     "min_seed_matches": 15,  # ... when one of their pairs has this many matches (and min_num_matches)
     # ground images with an accepted PnP pose that the mapper could not keep (their 2D-3D support comes
     # from many aerial images, or from the rendered depth, with no pair of min_num_matches) are added
@@ -451,9 +457,10 @@ def main(
         else:
             logger.warning("the mapper returned no model: keeping the seeded input model")
             rec = seed
+        seeded = {im.name for im in seed.images.values() if im.has_pose and im.name.startswith("ground/")}
         dropped = drop_ill_determined(
             rec,
-            pnp,
+            seeded,
             conf["max_position_std_m"],
             priors,
             prior_std,
@@ -595,14 +602,14 @@ def build_input_model(
 
 def drop_ill_determined(
     rec: pycolmap.Reconstruction,
-    pnp: dict[str, dict],
+    fixed: set[str],
     max_std: float | None,
     priors: dict[str, Pose] | None = None,
     prior_std: dict[str, tuple[float, float, float]] | None = None,
     pnp_conf: dict | None = None,
 ) -> dict[str, str]:
-    """Deregister the ground images the mapper registered (not those at an accepted PnP pose, checked by
-    the reducer) whose pose disagrees with their POS (with `priors` and `pnp_conf`, the reducer's POS
+    """Deregister the ground images the mapper registered (not those of `fixed`, held at the reducer's
+    PnP pose) whose pose disagrees with their POS (with `priors` and `pnp_conf`, the reducer's POS
     limits, services.transfer: a repeated facade can register an image far from where it was taken), or
     whose centre the model determines worse than `max_std` metres: the standard deviation along the
     worst direction from the covariance of the model's bundle adjustment with the other images held
@@ -616,7 +623,7 @@ def drop_ill_determined(
         return [
             im
             for im in rec.images.values()
-            if im.name.startswith("ground/") and im.has_pose and not pnp.get(im.name, {}).get("accepted")
+            if im.name.startswith("ground/") and im.has_pose and im.name not in fixed
         ]
 
     def pose_of(im: pycolmap.Image) -> Pose:

@@ -102,16 +102,13 @@ def test_mapper_registrations_far_from_their_pos_are_dropped():
     priors = {n: Pose.from_center(p.R.T, p.center) for n, p in true.items()}
     priors["ground/G0001.jpg"] = Pose.from_center(true["ground/G0001.jpg"].R.T, np.array([4.0, 20.0, 1.6]))
     # (no uncertainty check: the points here are seen by one image each, the POS check alone)
-    dropped = drop_ill_determined(rec, {}, None, priors, {n: STD for n in true}, PNP_CONF)
+    dropped = drop_ill_determined(rec, set(), None, priors, {n: STD for n in true}, PNP_CONF)
     assert list(dropped) == ["ground/G0001.jpg"] and "from the POS" in dropped["ground/G0001.jpg"]
     assert rec.find_image_with_name("ground/G0000.jpg").has_pose
     assert not rec.find_image_with_name("ground/G0001.jpg").has_pose
-    # an image at an accepted PnP pose is the reducer's to judge: kept
+    # an image held at its PnP pose (seeded) is the reducer's to judge: kept
     rec2 = pycolmap.Reconstruction(rec)
-    assert (
-        drop_ill_determined(rec2, {"ground/G0000.jpg": {"accepted": True}}, 0.25, priors, None, PNP_CONF)
-        == {}
-    )
+    assert drop_ill_determined(rec2, {"ground/G0000.jpg"}, 0.25, priors, None, PNP_CONF) == {}
 
 
 def test_the_report_says_why_a_ground_image_is_not_registered():
@@ -209,14 +206,14 @@ def test_a_run_of_ground_images_placed_by_a_patch_is_ill_determined():
         Pose(m[:, :3], m[:, 3]), CAM.K, np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
     )
     assert alone < 0.1 < 1.0 < min(stds.values())
-    dropped = drop_ill_determined(rec, {}, 0.5)
+    dropped = drop_ill_determined(rec, set(), 0.5)
     assert sorted(dropped) == ["ground/G0000.jpg", "ground/G0001.jpg", "ground/G0002.jpg"]
     assert all("ill-determined" in r for r in dropped.values())
 
     rec, ids = _anchored_street(patch=False)
     stds = joint_position_stds(rec, ground)
     assert max(stds.values()) < 0.5
-    assert drop_ill_determined(rec, {}, 0.5) == {}
+    assert drop_ill_determined(rec, set(), 0.5) == {}
     assert all(rec.images[i].has_pose for i in ground)
 
 

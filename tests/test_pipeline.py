@@ -136,6 +136,36 @@ def test_localized_ground_images_survive_a_mapper_that_makes_no_model(tiny_job, 
     assert pycolmap.Reconstruction(str(out)).num_reg_images() == 20 + len(accepted)
 
 
+def test_localized_ground_images_the_mapper_leaves_uncertain_are_kept_at_their_pnp_pose(tiny_job, tmp_path):
+    """The mapper registers every ground image itself (none is held at its PnP pose: seed_pnp_poses is
+    off) and each is judged by the model's covariance; with a bound no pose meets, every one it placed
+    is dropped, and those the reducer localized come back at their PnP pose, the others stay out."""
+    import copy
+
+    import numpy as np
+    import pycolmap
+
+    job, _, _ = tiny_job
+    strict = pipeline.Job.load(job.root)
+    strict.settings = copy.deepcopy(job.settings)
+    strict.settings["combined"] = {**strict.settings.get("combined", {}), "max_position_std_m": 1e-9}
+    assert strict.combined_conf()["seed_pnp_poses"] is False
+    out = pipeline.combined_reconstruction(strict, tmp_path / "combined")
+    rep = json.loads((tmp_path / "combined" / "report.json").read_text())
+    poses = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
+    accepted = {g for g, r in poses.items() if r["accepted"]}
+    assert accepted, "the tiny scene's reducer localizes ground images"
+    assert rep["seeded_ground_images"] == 0
+    assert {g for g, d in rep["ground"].items() if d["registered"]} == accepted
+    assert set(rep["added_pnp_ground_images"]) == accepted
+    rec = pycolmap.Reconstruction(str(out))
+    for g in accepted:
+        assert np.allclose(rec.find_image_with_name(g).projection_center(), poses[g]["center"], atol=1e-6)
+    for g, d in rep["ground"].items():
+        if g not in accepted and "reason" in d and "dropped" in d["reason"]:
+            assert "ill-determined" in d["reason"] or "POS" in d["reason"]
+
+
 def test_rerun_skips_every_stage(tiny_job):
     job, _, _ = tiny_job
     again = pipeline.run(pipeline.Job.load(job.root))
