@@ -94,6 +94,10 @@ _BASE: dict[str, Any] = {
         # keep views that no aerial image is a candidate of: the reducer's "3d" links reach their render
         # keypoints through the aerial points of the other views (services.transfer)
         "keep_without_aerial": True,
+        # with a depth probe: a view must see at least this fraction of the surface the ground camera sees
+        # from its POS pose (probed `covisibility_width` pixels wide; 0: unchecked)
+        "min_covisible": 0.5,
+        "covisibility_width": 96,
     },
     "candidates": {
         "aerial": 4,  # candidate aerial images per view
@@ -314,6 +318,41 @@ class Scene:
         r = np.linalg.norm(v - t[:, None] * d[None], axis=1)
         return int(((t > 0.5) & (t < ratio * dist) & (r < 0.75)).sum()) >= 3
 
+    def visible_surface(self, camera: Camera, pose: Pose, width: int, max_dist: float) -> np.ndarray | None:
+        """(N, 3) world points of what the camera sees (depth probe `width` pixels wide, depths up to
+        max_dist); None without a depth probe."""
+        if self.depth_fn is None:
+            return None
+        pc = probe_camera(camera, width)
+        try:
+            d = np.asarray(self.depth_fn(pc, pose), float)
+        except Exception as e:
+            logger.debug("surface probe failed: %s", e)
+            return None
+        v, u = np.nonzero(np.isfinite(d) & (d > 0) & (d <= max_dist))
+        z = d[v, u]
+        K = pc.K
+        x_cam = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
+        return (x_cam - pose.t[None]) @ pose.R  # R^T (x - t)
+
+    def covisible_fraction(self, points: np.ndarray, camera: Camera, pose: Pose, width: int) -> float | None:
+        """The fraction of `points` (N, 3) the camera sees: in its image and not hidden (its depth probe
+        agrees with their depth within 5% + 0.5 m); None without a depth probe or points."""
+        if self.depth_fn is None or points is None or len(points) == 0:
+            return None
+        pc = probe_camera(camera, width)
+        try:
+            d = np.asarray(self.depth_fn(pc, pose), float)
+        except Exception as e:
+            logger.debug("covisibility probe failed: %s", e)
+            return None
+        uv, z = pose.project(pc.K, points)
+        ui, vi = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        inside = (z > 0) & (ui >= 0) & (ui < pc.width) & (vi >= 0) & (vi < pc.height)
+        dz = d[vi[inside], ui[inside]]
+        seen = np.isfinite(dz) & (np.abs(dz - z[inside]) <= 0.05 * z[inside] + 0.5)
+        return float(seen.sum() / len(points))
+
 
 # -- views ---------------------------------------------------------------------------------------
 @dataclass
@@ -493,6 +532,12 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
     anchors = [
         n for _, n in aerial_candidates(probe, scene, _merge(conf, {"candidates": {"skip_nadir": True}}))
     ]
+    min_cov = float(gc["min_covisible"] or 0.0)
+    surface = (
+        scene.visible_surface(cam_g, pose_g, gc["covisibility_width"], 1.5 * gc["max_target_m"])
+        if min_cov > 0
+        else None
+    )
     out = []
     for height, placement in gc["placements"]:
         if placement == "above":
@@ -515,6 +560,16 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
             logger.debug("%s %s %.0f m: the target is occluded", g, placement, height)
             continue
         pose = look_at(C, T)
+        cov = (
+            scene.covisible_fraction(surface, cam, pose, gc["covisibility_width"])
+            if surface is not None
+            else None
+        )
+        if cov is not None and cov < min_cov:
+            logger.debug(
+                "%s %s %.0f m: sees %.0f%% of what the ground camera sees", g, placement, height, 100 * cov
+            )
+            continue
         out.append(
             ViewSpec(
                 f"G-{_stem(g)}-{placement}{int(round(height)):02d}",
@@ -528,6 +583,7 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
                     "placement": placement,
                     "target_from": how,
                     "pitch_deg": pitch_deg(pose),
+                    **({"covisible": cov} if cov is not None else {}),
                     **({"anchor": anchors[0]} if placement == "aerial" else {}),
                 },
             )

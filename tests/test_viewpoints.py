@@ -224,6 +224,75 @@ def test_viewpoint_overrides_take_lists_for_empty_ones():
         parse_overrides(["paper.height_fractions=[0.3]"], vp.confs["both"])
 
 
+def raycast(camera: Camera, pose: Pose, hole: tuple[float, float, float] | None = None) -> np.ndarray:
+    """Per-pixel z-depth of a scene of planes: the terrain (z = 0), a wall (y = 0, z <= 10) and, with
+    `hole` (y, x, z) given, a screen across the street at that y with a 0.6 m square hole around (x, z)."""
+    K = camera.K
+    u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    d = d_cam @ pose.R  # world directions whose camera z is 1: the ray parameter is the z-depth
+    c = pose.center
+    depth = np.full(u.shape, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -c[2] / d[..., 2]
+        depth = np.where(t > 0, np.minimum(depth, t), depth)
+        t = -c[1] / d[..., 1]
+        z = c[2] + t * d[..., 2]
+        depth = np.where((t > 0) & (z <= 10.0), np.minimum(depth, t), depth)
+        if hole is not None:
+            y_s, x_h, z_h = hole
+            t = (y_s - c[1]) / d[..., 1]
+            x, z = c[0] + t * d[..., 0], c[2] + t * d[..., 2]
+            through = (np.abs(x - x_h) < 0.3) & (np.abs(z - z_h) < 0.3)
+            depth = np.where((t > 0) & ~through, np.minimum(depth, t), depth)
+    return np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+
+
+def test_covisible_fraction_of_the_ground_cameras_surface():
+    g = pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)  # looking north at the wall
+    scene = make_scene({"ground/G0001.jpg": g})
+    scene.depth_fn = raycast
+    surface = scene.visible_surface(GCAM, g, 96, 60.0)
+    assert surface is not None and len(surface) > 1000
+    # on the terrain or the wall
+    assert np.all((np.abs(surface[:, 2]) < 0.05) | (np.abs(surface[:, 1]) < 0.05))
+    assert scene.covisible_fraction(surface, GCAM, g, 96) > 0.97
+    assert scene.covisible_fraction(surface, GCAM, pose_ypr([0.0, -15.0, 1.6], 180.0, 0.0), 96) == 0.0
+    behind_screen = pose_ypr([0.0, -25.0, 1.6], 0.0, 0.0)
+    scene.depth_fn = lambda cam, pose: raycast(cam, pose, (-22.0, 40.0, 1.6))  # the hole out of sight
+    assert scene.covisible_fraction(surface, GCAM, behind_screen, 96) == 0.0
+    scene.depth_fn = lambda cam, pose: raycast(cam, pose, (-22.0, 0.0, 1.6))  # straight ahead
+    assert 0.0 < scene.covisible_fraction(surface, GCAM, behind_screen, 96) < 0.2
+    scene.depth_fn = None
+    assert scene.visible_surface(GCAM, g, 96, 60.0) is None
+
+
+def test_ground_aware_skips_views_that_see_little_of_what_the_ground_camera_sees():
+    """A screen across the street behind the ground camera, with a hole where the line of sight of the
+    view 10 m back and 10 m up passes: its target is not occluded, everything else the ground camera
+    sees is."""
+    g = pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)
+    scene = make_scene({"ground/G0001.jpg": g})
+    # back10: C = (0, -25, 11.6) looking at T = (0, 0, 1.6) crosses y = -22 at z = 10.4
+    scene.depth_fn = lambda cam, pose: raycast(cam, pose, (-22.0, 0.0, 10.4))
+    base = vp._merge(
+        vp.confs["ground-aware"],
+        {
+            "views_per_ground_image": 8,
+            "ground": {"placements": [[10.0, "back"], [5.0, "back"], [10.0, "above"]]},
+        },
+    )
+    names = lambda conf: [v.name for v in vp.plan(scene, conf)]  # noqa: E731
+    assert names(vp._merge(base, {"ground": {"min_covisible": 0.0}})) == [
+        "G-G0001-above10",
+        "G-G0001-back05",
+        "G-G0001-back10",
+    ]
+    views = vp.plan(scene, base)
+    assert [v.name for v in views] == ["G-G0001-above10", "G-G0001-back05"]
+    assert all(v.meta["covisible"] >= 0.5 for v in views)
+
+
 def test_ground_aware_views_without_aerial_candidates():
     """The reducer's 3D links reach a view through the other views' aerial points: ground-aware views no
     aerial image is a candidate of are kept (unless keep_without_aerial is off)."""
