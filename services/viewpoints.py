@@ -318,17 +318,25 @@ class Scene:
         r = np.linalg.norm(v - t[:, None] * d[None], axis=1)
         return int(((t > 0.5) & (t < ratio * dist) & (r < 0.75)).sum()) >= 3
 
-    def visible_surface(self, camera: Camera, pose: Pose, width: int, max_dist: float) -> np.ndarray | None:
-        """(N, 3) world points of what the camera sees (depth probe `width` pixels wide, depths up to
-        max_dist); None without a depth probe."""
+    def depth_probe(self, camera: Camera, pose: Pose, width: int) -> tuple[Camera, np.ndarray] | None:
+        """(probe camera, z-depth map) of the camera scaled to `width` pixels; None without a depth
+        probe or when it fails."""
         if self.depth_fn is None:
             return None
         pc = probe_camera(camera, width)
         try:
-            d = np.asarray(self.depth_fn(pc, pose), float)
+            return pc, np.asarray(self.depth_fn(pc, pose), float)
         except Exception as e:
-            logger.debug("surface probe failed: %s", e)
+            logger.debug("depth probe failed: %s", e)
             return None
+
+    def visible_surface(self, camera: Camera, pose: Pose, width: int, max_dist: float) -> np.ndarray | None:
+        """(N, 3) world points of what the camera sees (depth probe `width` pixels wide, depths up to
+        max_dist); None without a depth probe."""
+        probe = self.depth_probe(camera, pose, width)
+        if probe is None:
+            return None
+        pc, d = probe
         v, u = np.nonzero(np.isfinite(d) & (d > 0) & (d <= max_dist))
         z = d[v, u]
         K = pc.K
@@ -338,14 +346,10 @@ class Scene:
     def covisible_fraction(self, points: np.ndarray, camera: Camera, pose: Pose, width: int) -> float | None:
         """The fraction of `points` (N, 3) the camera sees: in its image and not hidden (its depth probe
         agrees with their depth within 5% + 0.5 m); None without a depth probe or points."""
-        if self.depth_fn is None or points is None or len(points) == 0:
+        probe = None if points is None or len(points) == 0 else self.depth_probe(camera, pose, width)
+        if probe is None:
             return None
-        pc = probe_camera(camera, width)
-        try:
-            d = np.asarray(self.depth_fn(pc, pose), float)
-        except Exception as e:
-            logger.debug("covisibility probe failed: %s", e)
-            return None
+        pc, d = probe
         uv, z = pose.project(pc.K, points)
         ui, vi = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
         inside = (z > 0) & (ui >= 0) & (ui < pc.width) & (vi >= 0) & (vi < pc.height)
