@@ -457,10 +457,9 @@ def main(
         else:
             logger.warning("the mapper returned no model: keeping the seeded input model")
             rec = seed
-        seeded = {im.name for im in seed.images.values() if im.has_pose and im.name.startswith("ground/")}
         dropped = drop_ill_determined(
             rec,
-            seeded,
+            registered_ground(seed),
             conf["max_position_std_m"],
             priors,
             prior_std,
@@ -598,6 +597,11 @@ def build_input_model(
         n_seed,
     )
     return rec
+
+
+def registered_ground(rec: pycolmap.Reconstruction) -> set[str]:
+    """Names of the ground images `rec` holds a pose for."""
+    return {im.name for im in rec.images.values() if im.has_pose and im.name.startswith("ground/")}
 
 
 def drop_ill_determined(
@@ -853,7 +857,7 @@ def build_report(
     min_pair_matches: int = 15,
 ) -> dict:
     reg = {im.name: im for im in rec.images.values() if im.has_pose}
-    seeded = {im.name for im in seed.images.values() if im.has_pose and im.name.startswith("ground/")}
+    seeded = registered_ground(seed)
     if not conf_fixed:
         seeded = set()  # refined by the mapper's bundle adjustment: no longer the PnP pose
     sets = {
@@ -899,9 +903,7 @@ def build_report(
         "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
         "mean_track_length": float(rec.compute_mean_track_length()),
         "added_pnp_ground_images": sorted(added or []),
-        "seeded_ground_images": sum(
-            im.name.startswith("ground/") and im.has_pose for im in seed.images.values()
-        ),
+        "seeded_ground_images": len(registered_ground(seed)),
         "georef": georef,
         "ground": ground,
         "timings_s": {

@@ -279,15 +279,10 @@ class Scene:
         """Where the principal ray meets the scene: (T, method) or (None, "none")."""
         c, d = pose.center, optical_axis(pose)
         tc = conf["target"]
-        if self.depth_fn is not None:
-            try:
-                pc = probe_camera(camera, tc["probe_width"])
-                z = depth_at_center(np.asarray(self.depth_fn(pc, pose)), tc["depth_window"])
-            except Exception as e:  # a failed probe falls back to the points
-                logger.debug("depth probe failed: %s", e)
-                z = None
-            if z is not None and min_dist <= z <= max_dist:
-                return c + z * d, "depth"
+        probe = self.depth_probe(camera, pose, tc["probe_width"])  # a failed probe falls back to the points
+        z = depth_at_center(probe[1], tc["depth_window"]) if probe is not None else None
+        if z is not None and min_dist <= z <= max_dist:
+            return c + z * d, "depth"
         t = ray_target_points(
             c, d, self.points, tc["ray_cone_deg"], tc["min_points"], tc["quantile"], min_dist, max_dist
         )
@@ -301,15 +296,10 @@ class Scene:
     def occluded(self, center: np.ndarray, target: np.ndarray, camera: Camera, ratio: float) -> bool:
         """Whether something lies between `center` and `target` (depth probe, else sparse points)."""
         dist = float(np.linalg.norm(target - center))
-        if self.depth_fn is not None:
-            pose = look_at(center, target)
-            try:
-                z = depth_at_center(np.asarray(self.depth_fn(probe_camera(camera, 96), pose)), 3)
-            except Exception as e:
-                logger.debug("occlusion probe failed: %s", e)
-                z = None
-            if z is not None:
-                return z < ratio * dist
+        probe = self.depth_probe(camera, look_at(center, target), 96)
+        z = depth_at_center(probe[1], 3) if probe is not None else None
+        if z is not None:
+            return z < ratio * dist
         if len(self.points) == 0:
             return False
         d = (target - center) / dist
@@ -564,11 +554,7 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
             logger.debug("%s %s %.0f m: the target is occluded", g, placement, height)
             continue
         pose = look_at(C, T)
-        cov = (
-            scene.covisible_fraction(surface, cam, pose, gc["covisibility_width"])
-            if surface is not None
-            else None
-        )
+        cov = scene.covisible_fraction(surface, cam, pose, gc["covisibility_width"])
         if cov is not None and cov < min_cov:
             logger.debug(
                 "%s %s %.0f m: sees %.0f%% of what the ground camera sees", g, placement, height, 100 * cov
