@@ -11,7 +11,8 @@ Database (out/database.db), a copy of the aerial SfM database with:
   two-view geometries.
 
 Input model (out/input): the aerial model rebuilt with the extended keypoints (with `seed_pnp_poses`
-also the ground images whose PnP pose the reducer accepted, held at that pose), and one 3D point per
+also the ground images whose PnP pose the reducer accepted, held at that pose: by default those whose
+pose rests on rendered depth the reducer trusted), and one 3D point per
 transferred track, triangulated from its observations in registered images; the keypoints of the other
 ground images link a track's aerial observations without being part of it. pycolmap's incremental mapper
 continues from it (`input_path`): it registers the other ground images through these points,
@@ -63,8 +64,11 @@ default_conf: dict[str, Any] = {
     # registers them like the others and they are judged like the others; those it leaves out or drops
     # are added at their PnP pose, see add_pnp_images. A PnP pose on points triangulated through a
     # CPU-trained 3DGS's blurry renders can be 0.8 m off within its 0.25 m std, and held fixed it drags
-    # the chain of ground images the mapper registers from it: small-walk, README)
-    "seed_pnp_poses": False,
+    # the chain of ground images the mapper registers from it: small-walk, README). "trusted": only the
+    # poses that rest on rendered depth the reducer trusted (at least seed_min_trusted_ratio of their
+    # inliers lifted by the depth of views whose depth agrees with the aerial points: exact renders)
+    "seed_pnp_poses": "trusted",
+    "seed_min_trusted_ratio": 0.5,
     "min_seed_matches": 15,  # ... when one of their pairs has this many matches (and min_num_matches)
     # ground images with an accepted PnP pose that the mapper could not keep (their 2D-3D support comes
     # from many aerial images, or from the rendered depth, with no pair of min_num_matches) are added
@@ -570,6 +574,8 @@ def build_input_model(
             # the mapper only keeps images with a pair of at least min_num_matches correspondences
             if not r.get("accepted") or g not in ids or pair_sizes.get(ids[g], 0) < min_pair:
                 continue
+            if conf["seed_pnp_poses"] == "trusted" and not rests_on_trusted_depth(r, conf):
+                continue
             iid = ids[g]
             im = pycolmap.Image(name=g, keypoints=kps[iid], camera_id=ground_cam_id, image_id=iid)
             pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(r["R"], float)), np.asarray(r["t"], float))
@@ -597,6 +603,13 @@ def build_input_model(
         n_seed,
     )
     return rec
+
+
+def rests_on_trusted_depth(pose: dict, conf: dict) -> bool:
+    """Whether a reducer's PnP pose (ground_poses.json) rests on rendered depth it trusted: at least
+    seed_min_trusted_ratio of its inliers (and one) lifted by such depth."""
+    n = int(pose.get("num_inliers", 0))
+    return n > 0 and int(pose.get("trusted_depth_inliers", 0)) >= conf["seed_min_trusted_ratio"] * n
 
 
 def registered_ground(rec: pycolmap.Reconstruction) -> set[str]:

@@ -731,17 +731,19 @@ def reduce_views(
             ig = np.concatenate([merged[k]["ig"] for k in keys]) if keys else np.zeros(0, np.int64)
             X = np.concatenate([merged[k]["X"] for k in keys]) if keys else np.zeros((0, 3))
             sc = np.concatenate([merged[k]["score"] for k in keys]) if keys else np.zeros(0, np.float32)
+            from_depth = np.zeros(len(ig), bool)
             dp = conf["pnp"]["depth_points"]
             if dp:  # also render-ground matches lifted by the rendered depth (of the views it can be trusted)
                 og = obs[g]
                 has_x = np.isfinite(og["X"]).all(1)
+                errors = stats["aerial_rejected"]["depth_error"]
+                trusted = np.isin(og["view"], trusted_depth_views(view_names, errors, conf["pnp"]))
                 if dp == "trusted":
-                    errors = stats["aerial_rejected"]["depth_error"]
-                    trusted = trusted_depth_views(view_names, errors, conf["pnp"])
-                    has_x &= np.isin(og["view"], trusted)
+                    has_x &= trusted
                 ig = np.concatenate([ig, og["i"][has_x]])
                 X = np.concatenate([X, og["X"][has_x]])
                 sc = np.concatenate([sc, og["score"][has_x]])
+                from_depth = np.concatenate([from_depth, trusted[has_x]])
             # one 3D point per ground keypoint: the best-scored one
             order = np.lexsort((-sc.astype(np.float64), ig))
             first = np.ones(len(order), bool)
@@ -750,8 +752,10 @@ def reduce_views(
             kp = keypoints[g][ig[sel]].astype(np.float64)
             res = estimate_ground_pose(kp, X[sel], ground_camera, priors.get(g), prior_std.get(g), conf)
             pose = res.pop("_pose", None)
-            res.pop("_inliers", None)
+            inl = res.pop("_inliers", None)
             res.pop("_err", None)
+            if inl is not None:  # inliers whose 3D point is the rendered depth of a view trusted for it
+                res["trusted_depth_inliers"] = int((from_depth[sel] & inl).sum())
             poses[g] = res
             for key in keys:
                 m = merged[key]

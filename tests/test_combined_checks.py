@@ -264,3 +264,57 @@ def test_transferred_tracks_are_seeded_for_ground_images_not_registered_yet():
     rec = model(aerial | {"ground/G0000.jpg"})
     assert _seed_tracks(rec, ids, offsets, ag, kps, aerial | {"ground/G0000.jpg"}) == 30
     assert all(p.track.length() == 3 for p in rec.points3D.values())
+
+
+def test_the_input_model_holds_the_pnp_poses_its_seeding_mode_takes(tmp_path):
+    """services.combined_sfm.build_input_model: with seed_pnp_poses "trusted" (the default) only the
+    accepted PnP poses that rest on trusted rendered depth start registered; True takes every accepted
+    pose with a pair the mapper keeps, False none."""
+    from services import combined_sfm
+
+    aerial_cam = Camera("PINHOLE", 1600, 1200, [1300.0, 1300.0, 800.0, 600.0])
+    true = {
+        "aerial/A0000.jpg": look_at(np.array([0.0, -25.0, 45.0]), np.array([4.0, 10.0, 3.0])),
+        **_street(3),
+    }
+    db = pycolmap.Database.open(str(tmp_path / "db.db"))
+    ids = {
+        **combined_sfm._write_ground(db, aerial_cam, ["aerial/A0000.jpg"]),
+        **combined_sfm._write_ground(db, CAM, sorted(n for n in true if n.startswith("ground/"))),
+    }
+    for i in ids.values():
+        db.write_keypoints(i, np.random.default_rng(i).uniform(0, 700, (50, 2)).astype(np.float32))
+    db.close()
+    aerial = pycolmap.Reconstruction()
+    aerial.add_camera_with_trivial_rig(aerial_cam.to_pycolmap(1))
+    pose = pycolmap.Rigid3d(pycolmap.Rotation3d(true["aerial/A0000.jpg"].R), true["aerial/A0000.jpg"].t)
+    aerial.add_image_with_trivial_frame(
+        pycolmap.Image(name="aerial/A0000.jpg", camera_id=1, image_id=ids["aerial/A0000.jpg"]), pose
+    )
+
+    def pnp(name: str, trusted: int, accepted: bool = True) -> dict:
+        p = true[name]
+        return {"accepted": accepted, "R": p.R.tolist(), "t": p.t.tolist(), "num_inliers": 40,
+                "trusted_depth_inliers": trusted}  # fmt: skip
+
+    poses = {
+        "ground/G0000.jpg": pnp("ground/G0000.jpg", 40),  # on the exact rendered depth
+        "ground/G0001.jpg": pnp("ground/G0001.jpg", 0),  # on points triangulated through the renders
+        "ground/G0002.jpg": pnp("ground/G0002.jpg", 40, accepted=False),
+    }
+    pair_sizes = dict.fromkeys(ids.values(), 100)
+
+    def seeded(mode) -> set[str]:
+        conf = combined_sfm._merge(combined_sfm.default_conf, {"seed_pnp_poses": mode, "seed_points": False})
+        out = tmp_path / f"input-{mode}"
+        rec = combined_sfm.build_input_model(
+            aerial, tmp_path / "db.db", ids, {}, [], poses, pair_sizes, conf, out
+        )
+        return combined_sfm.registered_ground(rec)
+
+    assert combined_sfm.default_conf["seed_pnp_poses"] == "trusted"
+    assert seeded("trusted") == {"ground/G0000.jpg"}
+    assert seeded(True) == {"ground/G0000.jpg", "ground/G0001.jpg"}
+    assert seeded(False) == set()
+    pair_sizes[ids["ground/G0000.jpg"]] = 5  # no pair the mapper keeps
+    assert seeded("trusted") == set()

@@ -137,7 +137,7 @@ def test_localized_ground_images_survive_a_mapper_that_makes_no_model(tiny_job, 
 
 
 def test_localized_ground_images_the_mapper_leaves_uncertain_are_kept_at_their_pnp_pose(tiny_job, tmp_path):
-    """The mapper registers every ground image itself (none is held at its PnP pose: seed_pnp_poses is
+    """The mapper registers every ground image itself (none is held at its PnP pose: seed_pnp_poses
     off) and each is judged by the model's covariance; with a bound no pose meets, every one it placed
     is dropped, and those the reducer localized come back at their PnP pose, the others stay out."""
     import copy
@@ -148,8 +148,11 @@ def test_localized_ground_images_the_mapper_leaves_uncertain_are_kept_at_their_p
     job, _, _ = tiny_job
     strict = pipeline.Job.load(job.root)
     strict.settings = copy.deepcopy(job.settings)
-    strict.settings["combined"] = {**strict.settings.get("combined", {}), "max_position_std_m": 1e-9}
-    assert strict.combined_conf()["seed_pnp_poses"] is False
+    strict.settings["combined"] = {
+        **strict.settings.get("combined", {}),
+        "max_position_std_m": 1e-9,
+        "seed_pnp_poses": False,
+    }
     out = pipeline.combined_reconstruction(strict, tmp_path / "combined")
     rep = json.loads((tmp_path / "combined" / "report.json").read_text())
     poses = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
@@ -164,6 +167,45 @@ def test_localized_ground_images_the_mapper_leaves_uncertain_are_kept_at_their_p
     for g, d in rep["ground"].items():
         if g not in accepted and "reason" in d and "dropped" in d["reason"]:
             assert "ill-determined" in d["reason"] or "POS" in d["reason"]
+
+
+def test_the_reducer_counts_the_pnp_inliers_on_trusted_rendered_depth(tiny_job, tmp_path):
+    """ground_poses.json says how many of a pose's inliers rest on rendered depth the reducer trusted
+    (the tiny job renders exact views: all of them), what the combined reconstruction's default
+    seed_pnp_poses ("trusted") decides on (tests/test_combined_checks.py)."""
+    from services.combined_sfm import rests_on_trusted_depth
+
+    job, _, _ = tiny_job
+    conf = job.combined_conf()
+    assert conf["seed_pnp_poses"] == "trusted"
+    poses = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
+    accepted = {g: r for g, r in poses.items() if r["accepted"]}
+    assert accepted
+    for r in accepted.values():
+        assert 0 < r["trusted_depth_inliers"] <= r["num_inliers"]
+        assert rests_on_trusted_depth(r, conf)
+    # a pose counts when at least half of its inliers (seed_min_trusted_ratio) are on trusted depth
+    assert rests_on_trusted_depth({"num_inliers": 40, "trusted_depth_inliers": 20}, conf)
+    assert not rests_on_trusted_depth({"num_inliers": 40, "trusted_depth_inliers": 19}, conf)
+    assert not rests_on_trusted_depth({"num_inliers": 0, "trusted_depth_inliers": 0}, conf)
+    assert not rests_on_trusted_depth({"num_inliers": 40}, conf)  # reducer output before this count
+    # with the rendered depth unused, no inlier rests on it
+    from services import transfer
+
+    conf = {**job.transfer_conf(), "pnp": {**job.transfer_conf()["pnp"], "depth_points": False}}
+    transfer.main(
+        conf,
+        job.dir("views") / "views.json",
+        sorted(job.dir("matches").glob("*.h5")),
+        job.dir("sfm") / "sparse",
+        job.pos,
+        job.cameras,
+        job.dir("sfm") / "georef.json",
+        tmp_path / "transfer",
+        features=job.features_path,
+    )
+    poses = json.loads((tmp_path / "transfer" / "ground_poses.json").read_text())["images"]
+    assert all(r.get("trusted_depth_inliers", 0) == 0 for r in poses.values())
 
 
 def test_rerun_skips_every_stage(tiny_job):
