@@ -14,7 +14,9 @@ docs/formats.md):
 - **ground-aware**: for every ground camera (POS: noisy position and attitude), its target T (where its
   optical axis meets the scene, else a point `look_ahead_m` ahead), and views at several heights above
   the ground camera looking at T: straight above the ground camera, moved back along its heading, or on
-  the segment from the ground camera to the aerial camera that sees T most like it does.
+  the segment from the ground camera to the aerial camera that sees T most like it does. A ground
+  camera's POS height (GNSS: metres of noise) is first fused with the terrain under it plus the camera's
+  height above the street (`place_ground_on_terrain`).
 
 Targets come from a depth callback (e.g. a rendered depth map of the 3DGS model) when one is given, else
 from the aerial model's sparse points near the ray, else from the terrain plane.
@@ -73,6 +75,17 @@ _BASE: dict[str, Any] = {
         "min_target_m": 4.0,
         "max_target_m": 40.0,
         "camera_height_m": 1.5,  # ground cameras above the terrain
+        # the ground cameras' heights from the terrain under them: GNSS heights are the noisiest part of a
+        # POS (the synthetic presets': 4 m std, some cameras metres underground or in the air), a camera on
+        # a walker or a car stands camera_height_m above the street. The terrain's height: the low quantile
+        # of a nadir depth probe within terrain_radius_m, else of the sparse points within
+        # terrain_points_radius_m; fused with the POS height by their standard deviations (terrain_std_m)
+        "height_from_terrain": True,
+        "terrain_std_m": 0.5,
+        "terrain_radius_m": 4.0,
+        "terrain_points_radius_m": 10.0,
+        "terrain_quantile": 0.1,
+        "terrain_max_drop_m": 30.0,  # how far below the model's terrain (terrain_z) a depth probe may reach
         # (height above the ground camera in metres, placement), in order of preference: the first
         # `views_per_ground_image` that are not occluded are kept. Placements: "above" (straight above
         # the ground camera), "back" (moved back along its heading by the height: a 45 degree line),
@@ -272,6 +285,7 @@ class Scene:
     points: np.ndarray  # (P, 3) sparse points of the aerial model
     terrain_z: float
     depth_fn: DepthFn | None = None
+    ground_heights: dict[str, dict] = field(default_factory=dict)  # see place_ground_on_terrain
 
     def target(
         self, camera: Camera, pose: Pose, conf: dict, min_dist: float = 0.0, max_dist: float = np.inf
@@ -730,7 +744,7 @@ def load_scene(
         else None
     )
     terrain = z_pts if z_pts is not None else (z_cam if z_cam is not None else 0.0)
-    return Scene(
+    scene = Scene(
         cams_a,
         poses_a,
         {n: cameras["ground"] for n in ground_poses},
@@ -740,6 +754,67 @@ def load_scene(
         terrain,
         depth_fn,
     )
+    if conf["ground"]["height_from_terrain"]:
+        place_ground_on_terrain(scene, conf["ground"])
+    return scene
+
+
+def terrain_height(scene: Scene, xy: np.ndarray, gc: dict) -> tuple[float | None, str]:
+    """(height, source) of the terrain at the horizontal position `xy`: the `terrain_quantile` of the
+    surface heights a nadir depth probe sees within `terrain_radius_m` (the street beside a car or under
+    a tree's crown, not its roof; when it sees the model there), else of the sparse points within
+    `terrain_points_radius_m`."""
+    q = gc["terrain_quantile"]
+    top = float(max(np.max(scene.points[:, 2]) if len(scene.points) else scene.terrain_z, scene.terrain_z))
+    top += 20.0
+    w = 32
+    f = 0.5 * w * (top - scene.terrain_z) / gc["terrain_radius_m"]
+    nadir = Camera("PINHOLE", w, w, [f, f, w / 2, w / 2])
+    center = np.array([xy[0], xy[1], top])
+    probe = scene.depth_probe(nadir, look_at(center, center - [0.0, 0.0, 1.0]), w)
+    if probe is not None:
+        d = probe[1]
+        # the surface, not the background of rays that miss the model (0, infinite or far below it)
+        d = d[np.isfinite(d) & (d > 0) & (d <= top - scene.terrain_z + gc["terrain_max_drop_m"])]
+        if d.size >= w * w // 4:
+            return float(np.quantile(top - d, q)), "depth"
+    if len(scene.points):
+        near = (
+            np.linalg.norm(scene.points[:, :2] - np.asarray(xy)[None], axis=1)
+            <= gc["terrain_points_radius_m"]
+        )
+        if near.sum() >= 10:
+            return float(np.quantile(scene.points[near, 2], q)), "points"
+    return None, "none"
+
+
+def place_ground_on_terrain(scene: Scene, gc: dict) -> dict[str, dict]:
+    """Move each ground camera's POS height towards camera_height_m above the terrain under it: the two
+    heights weighted by the inverse of their variances (the POS's std_z, terrain_std_m), which also
+    becomes the camera's std_z. Updates `scene` and returns {name: heights} (also scene.ground_heights)."""
+    out = {}
+    for n, pose in sorted(scene.ground_poses.items()):
+        C = pose.center
+        ground, source = terrain_height(scene, C[:2], gc)
+        if ground is None:
+            continue
+        s_xy, s_pos, s_att = scene.ground_std[n]
+        s_ter = float(gc["terrain_std_m"])
+        w_pos, w_ter = 1.0 / max(s_pos, 1e-6) ** 2, 1.0 / max(s_ter, 1e-6) ** 2
+        z = (w_pos * C[2] + w_ter * (ground + gc["camera_height_m"])) / (w_pos + w_ter)
+        scene.ground_poses[n] = Pose.from_center(pose.R.T, np.array([C[0], C[1], z]))
+        scene.ground_std[n] = (s_xy, float((w_pos + w_ter) ** -0.5), s_att)
+        out[n] = {"pos_z": float(C[2]), "terrain_z": ground, "terrain_from": source, "z": float(z)}
+    if out:
+        moved = np.array([abs(d["z"] - d["pos_z"]) for d in out.values()])
+        logger.info(
+            "ground cameras placed %.1f m above the terrain: heights moved by %.2f m (median), %.2f m (max)",
+            gc["camera_height_m"],
+            float(np.median(moved)),
+            float(moved.max()),
+        )
+    scene.ground_heights = out
+    return out
 
 
 def write_views(path: str | Path, views: list[ViewSpec], extra: dict | None = None) -> Path:
@@ -791,6 +866,7 @@ def main(
                 "planner": conf["planner"],
                 "frame": {"type": "ENU", "lat0": frame.lat0, "lon0": frame.lon0, "h0": frame.h0},
                 "terrain_z": scene.terrain_z,
+                "ground_heights": scene.ground_heights,
                 "summary": info,
                 "conf": conf,
             },

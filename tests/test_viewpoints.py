@@ -304,3 +304,49 @@ def test_ground_aware_views_without_aerial_candidates():
     views = vp.plan(scene, conf)
     assert len(views) == 2 and all(v.aerial == [] and v.ground[0] == "ground/G0001.jpg" for v in views)
     assert vp.plan(scene, vp._merge(conf, {"ground": {"keep_without_aerial": False}})) == []
+
+
+def test_ground_cameras_are_placed_on_the_terrain():
+    """GNSS heights are the noisiest part of a ground POS: each ground camera's height is fused with
+    camera_height_m above the terrain under it (the low quantile of a nadir depth probe: the street
+    beside a wall, not its top), weighted by the POS's std_z and terrain_std_m."""
+    gc = vp.confs["both"]["ground"]
+    ground = {
+        "ground/G0001.jpg": pose_ypr([0.0, -15.0, -3.0], 0.0, 0.0),  # 3 m underground (std_z 4 m)
+        "ground/G0002.jpg": pose_ypr([5.0, -2.0, 9.0], 0.0, 0.0),  # 9 m up, 2 m from the 10 m wall
+        "ground/G0003.jpg": pose_ypr([-5.0, -20.0, 3.0], 0.0, 0.0),  # an RTK height (std_z 5 cm)
+    }
+    scene = make_scene(ground)
+    scene.ground_std["ground/G0003.jpg"] = (0.05, 0.05, 1.0)
+    scene.depth_fn = raycast
+    assert vp.terrain_height(scene, np.array([5.0, -2.0]), gc) == (pytest.approx(0.0, abs=1e-3), "depth")
+    heights = vp.place_ground_on_terrain(scene, gc)
+    assert heights == scene.ground_heights and set(heights) == set(ground)
+    w_pos, w_ter = 1 / 4.0**2, 1 / gc["terrain_std_m"] ** 2
+    for g, pos_z in (("ground/G0001.jpg", -3.0), ("ground/G0002.jpg", 9.0)):
+        want = (w_pos * pos_z + w_ter * gc["camera_height_m"]) / (w_pos + w_ter)
+        assert scene.ground_poses[g].center[2] == pytest.approx(want, abs=1e-3)
+        assert abs(scene.ground_poses[g].center[2] - gc["camera_height_m"]) < 0.15
+        assert scene.ground_std[g][1] == pytest.approx((w_pos + w_ter) ** -0.5)
+        # only the height moves: the position and the attitude are the POS's
+        assert np.allclose(scene.ground_poses[g].center[:2], ground[g].center[:2])
+        assert np.allclose(scene.ground_poses[g].R, ground[g].R)
+    assert scene.ground_poses["ground/G0003.jpg"].center[2] == pytest.approx(3.0, abs=0.02)
+    # the ground-aware views stand their height above the placed camera
+    views = vp.plan(scene, vp._merge(vp.confs["ground-aware"], {"views_per_ground_image": 2}))
+    for v in (v for v in views if v.meta["placement"] == "above"):
+        assert v.center[2] - scene.ground_poses[v.source].center[2] == pytest.approx(v.meta["height_m"])
+    # without a depth probe: the sparse points around the camera
+    scene = make_scene(ground)
+    rng = np.random.default_rng(0)
+    scene.points = np.concatenate(
+        [
+            rng.uniform([-30, -30, -0.05], [30, 0, 0.05], (500, 3)),
+            rng.uniform([-30, 0, 0], [30, 1, 10], (200, 3)),
+        ]
+    )
+    z, source = vp.terrain_height(scene, np.array([0.0, -15.0]), gc)
+    assert source == "points" and abs(z) < 0.05
+    scene.points = np.zeros((0, 3))
+    assert vp.terrain_height(scene, np.array([0.0, -15.0]), gc) == (None, "none")
+    assert vp.place_ground_on_terrain(scene, gc) == {}
