@@ -37,6 +37,10 @@ DEMO_OPTIONS = {
     "max_keypoints": 1024,
     "seed": 0,
 }
+# seconds of 3DGS training at most (services.splat `time_budget_s`): 3000 steps took 8.5-9.5 min on most
+# sessions' machines (the baselines' process beside it), 14-17 min on two slower ones, where the demo ran
+# 24-30 min; within the budget the run takes fewer steps
+DEMO_SPLAT_BUDGET_S = 600.0
 DEMO_SETTINGS = {
     "torch_threads": 1,
     # CPU training: cap the model size. 3000 steps at 400 px on small-walk (bench/splat_views.py, 20 views
@@ -390,6 +394,9 @@ def demo(
     view_planner: str = typer.Option(DEMO_OPTIONS["view_planner"], help="paper, ground-aware or both"),
     views_per_ground_image: int = typer.Option(DEMO_OPTIONS["views_per_ground_image"]),
     splat_steps: int = typer.Option(DEMO_OPTIONS["splat_steps"]),
+    splat_time_budget: float = typer.Option(
+        DEMO_SPLAT_BUDGET_S, help="seconds of 3DGS training at most: fewer steps on a slow machine (0: none)"
+    ),
     max_keypoints: int = typer.Option(DEMO_OPTIONS["max_keypoints"]),
     supersample: int = typer.Option(1, help="synthesis supersampling (the preset's is 2: slower, smoother)"),
     baselines: bool = typer.Option(True, help="also run the direct baselines"),
@@ -410,6 +417,8 @@ def demo(
     t_start = time.perf_counter()
     if preset not in synth.confs:
         _fail(f"unknown preset {preset!r}: {', '.join(synth.confs)}")
+    if splat_time_budget < 0:
+        _fail(f"--splat-time-budget must be >= 0 seconds, got {splat_time_budget}")
     tex = textures or (DEFAULT_TEXTURES if DEFAULT_TEXTURES.is_dir() else None)
     scene = out / "scene"
     timings: dict[str, float] = {}
@@ -429,6 +438,7 @@ def demo(
         "max_keypoints": max_keypoints,
     }
     settings = {**DEMO_SETTINGS, "renderer": renderer, "scene": str(scene) if renderer == "gt" else None}
+    settings["splat"] = {**DEMO_SETTINGS["splat"], "time_budget_s": splat_time_budget or None}
     job = pipeline.Job.create(
         out / "job",
         scene / "images" / "aerial",

@@ -437,19 +437,20 @@ def train_splat(
     conf_file.write_text(json.dumps(trainer.conf, indent=1))
     inputs_file.write_text(inputs + "\n")
     write_views(data.views, out / "views.json")
-    steps = int(trainer.conf["steps"])
     chunk = int(trainer.conf["ckpt_every"])
     t0 = time.perf_counter()
     done = 0
-    while done < steps:
-        trainer.train(resume=True, stop_after=min(done + chunk, steps), progress=False)
-        done = trainer.step
+    while done < trainer.total_steps:  # conf["steps"], or fewer within conf["time_budget_s"]
+        trainer.train(resume=True, stop_after=min(done + chunk, trainer.total_steps), progress=False)
+        done, steps = trainer.step, trainer.total_steps
         report(done / steps, f"step {done}/{steps}, {len(trainer.splats['means'])} Gaussians")
     train_s = time.perf_counter() - t0
     trainer.export()
     test = trainer.evaluate() if data.test_ids else {"psnr": float("nan"), "ssim": float("nan"), "n_views": 0}
     metrics = {
         "steps": trainer.step,
+        "steps_planned": int(trainer.conf["steps"]),  # more than "steps" when the time budget cut the run
+        "time_budget_s": trainer.conf["time_budget_s"],
         "num_gaussians": len(trainer.splats["means"]),
         "backend": trainer.backend,
         "resolution": [data.views[0].width, data.views[0].height],

@@ -148,3 +148,10 @@ def test_run_takes_splat_view_and_match_overrides_and_rejects_bad_ones(tiny_scen
     mconf = job.match_conf()
     assert mconf["render_detection_threshold"] == -1 and mconf["matcher"]["filter_threshold"] == 0.05
     assert job.splat_conf()["max_width"] == 400
+
+
+def test_demo_rejects_a_negative_time_budget(tmp_path):
+    result = runner.invoke(app, ["demo", str(tmp_path / "demo"), "--splat-time-budget", "-5"])
+    assert result.exit_code == 2
+    assert "--splat-time-budget must be >= 0 seconds" in result.output
+    assert not (tmp_path / "demo").exists()

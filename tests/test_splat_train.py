@@ -135,6 +135,29 @@ def test_resume_gives_the_same_result(tiny, tmp_path):
         assert torch.equal(sa["exp_avg"], sc["exp_avg"]) and torch.equal(sa["exp_avg_sq"], sc["exp_avg_sq"])
 
 
+def test_time_budget_cuts_the_run_and_decays_the_learning_rate_over_it(tiny, tmp_path):
+    """With time_budget_s the run ends within the budget (checked every budget_every steps at the pace of
+    the last ones), at the means' final learning rate; the checkpoint keeps the cut length and the time."""
+    from services.splat.render import latest_checkpoint
+
+    _, views, pts, cols = tiny
+    data = SceneData.from_views(views, pts, cols, test_every=0)
+    Trainer(_tiny_conf(steps=3), data, tmp_path / "warm", backend="cpu").train(progress=False)  # JIT
+    conf = _tiny_conf(steps=100_000, time_budget_s=2.0, budget_every=5, ckpt_every=50)
+    tr = Trainer(conf, data, tmp_path / "run", backend="cpu")
+    tr.train(progress=False)
+    assert 10 <= tr.step < 100_000 and tr.step == tr.total_steps
+    assert tr.elapsed_s < 2.0 + 1.0  # the budget, and what a few steps past its last check take
+    assert tr.means_lr(tr.step) == pytest.approx(tr.extent * conf["lr"]["means_final"])
+    again = Trainer(conf, data, tmp_path / "run", backend="cpu")
+    again.load_checkpoint(latest_checkpoint(tmp_path / "run"))
+    assert (again.step, again.total_steps, again.elapsed_s) == (tr.step, tr.total_steps, tr.elapsed_s)
+    again.train(resume=True, progress=False)  # nothing left to train
+    assert again.step == tr.step
+    # without a budget the run is conf["steps"] long
+    assert Trainer(_tiny_conf(), data, tmp_path / "none", backend="cpu").total_steps == 50
+
+
 @pytest.mark.parametrize("degree", [0, 3])
 def test_ply_round_trip(tmp_path, degree):
     g = torch.Generator().manual_seed(degree)
@@ -276,6 +299,8 @@ def test_train_conf_options_and_sets():
     assert c["strategy"]["refine_every"] == 80 and c["steps"] == confs["fast"]["steps"]
     assert train_conf(confs["fast"], None, {}, ["strategy.verbose=true"])["strategy"]["verbose"] is True
     assert train_conf(confs["fast"], None, {}, ["lr.means=2"])["lr"]["means"] == 2.0
+    assert train_conf(confs["fast"], None, {}, ["time_budget_s=600"])["time_budget_s"] == 600
+    assert train_conf(confs["fast"], None, {}, ["time_budget_s=null"])["time_budget_s"] is None
 
 
 @pytest.mark.parametrize(
@@ -290,6 +315,7 @@ def test_train_conf_options_and_sets():
         ("strategy.verbose=1", "expected true or false"),
         ("background=[1,1]", "list of 3"),
         ("refine_every", "expected key=value"),
+        ("time_budget_s=soon", "expected a number or null"),
     ],
 )
 def test_train_conf_rejects(item, msg):

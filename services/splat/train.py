@@ -71,6 +71,11 @@ _DEFAULT: dict[str, Any] = {
     "torch_threads": 1,  # for the CPU backend; numba runs the rasterizer on all cores
     "save_test_renders": True,
     "log_every": 100,  # log mean loss / PSNR every this many steps when there is no progress bar
+    # seconds of training at most (None: unbounded): every `budget_every` steps the run's length is set
+    # to what the rest of the budget allows at the pace of the last ones (at most `steps`); the means'
+    # learning rate decays over that length. Time-based, so not reproducible step for step
+    "time_budget_s": None,
+    "budget_every": 50,
 }
 
 
@@ -164,8 +169,8 @@ def parse_overrides(items: list[str], base: dict) -> dict:
     "lr.means=3e-4") -> a nested override of `base` (merge it with `_merge`).
 
     Keys must exist in `base`; a value must fit the kind of the one it replaces (ints stay ints, a number
-    for a float, a list of the same length for a list, of any length for an empty one, no group replaced
-    by a value). Raises ValueError with the reason."""
+    for a float, a number or null for null, a list of the same length for a list, of any length for an
+    empty one, no group replaced by a value). Raises ValueError with the reason."""
     over: dict = {}
     for item in items:
         key, sep, text = item.partition("=")
@@ -196,6 +201,9 @@ def parse_overrides(items: list[str], base: dict) -> dict:
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError(f"{key}: expected a number, got {text!r}")
             value = float(value)
+        elif old is None:  # the confs' optional entries are numbers
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+                raise ValueError(f"{key}: expected a number or null, got {text!r}")
         elif isinstance(old, list) and not (isinstance(value, list) and (len(value) == len(old) or not old)):
             raise ValueError(f"{key}: expected a list of {len(old)} values, e.g. {json.dumps(old)}")
         dst[last] = value
@@ -333,6 +341,8 @@ class Trainer:
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.strategy_state: dict = {}
         self.step = 0  # steps done
+        self.total_steps = int(self.conf["steps"])  # the run's length: conf["steps"], or less (time budget)
+        self.elapsed_s = 0.0  # training time so far, over resumes (checkpoints keep it)
         self.history: list[dict] = []
 
     # ---- model and optimizers
@@ -363,7 +373,7 @@ class Trainer:
 
     def means_lr(self, step: int) -> float:
         lr = self.conf["lr"]
-        t = min(step / max(self.conf["steps"], 1), 1.0)
+        t = min(step / max(self.total_steps, 1), 1.0)
         return self.extent * lr["means"] * (lr["means_final"] / lr["means"]) ** t
 
     def sh_degree_at(self, step: int) -> int:
@@ -389,6 +399,8 @@ class Trainer:
             "rng": _rng_state(),
             "history": self.history,
             "conf": self.conf,
+            "total_steps": self.total_steps,
+            "elapsed_s": self.elapsed_s,
         }
         tmp = path.with_suffix(".tmp")
         torch.save(state, tmp)
@@ -408,6 +420,8 @@ class Trainer:
         _set_rng_state(ck["rng"])
         self.step = int(ck["step"])
         self.history = list(ck.get("history", []))
+        self.total_steps = int(ck.get("total_steps", self.conf["steps"]))
+        self.elapsed_s = float(ck.get("elapsed_s", 0.0))
 
     # ---- rendering
     def render_view(
@@ -434,7 +448,8 @@ class Trainer:
 
     # ---- training
     def train(self, resume: bool = False, stop_after: int | None = None, progress: bool = True) -> dict:
-        """Train up to conf["steps"] (or stop once `stop_after` steps are done, as if killed)."""
+        """Train up to conf["steps"], or fewer within conf["time_budget_s"] (or stop once `stop_after`
+        steps are done, as if killed)."""
         c = self.conf
         n_threads = torch.get_num_threads()
         if self.backend == "cpu" and c["torch_threads"]:
@@ -461,9 +476,10 @@ class Trainer:
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=c["steps"], initial=self.step, desc="splat", dynamic_ncols=True)
+            bar = tqdm(total=self.total_steps, initial=self.step, desc="splat", dynamic_ncols=True)
         t0 = time.perf_counter()
-        while self.step < c["steps"]:
+        elapsed0, pace = self.elapsed_s, None  # the pace is measured from the first check on (after JIT)
+        while self.step < self.total_steps:
             step = self.step
             v = self.data.views[self.view_at(step)]
             if v.name not in imgs:
@@ -515,13 +531,37 @@ class Trainer:
                 bar.set_postfix(
                     loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}", n=len(self.splats["means"])
                 )
-            if self.step % c["ckpt_every"] == 0 or self.step == c["steps"]:
+            self.elapsed_s = elapsed0 + time.perf_counter() - t0
+            if c["time_budget_s"] and self.step % c["budget_every"] == 0:
+                pace = self._fit_time_budget(pace) if pace else (time.perf_counter(), self.step)
+                if bar is not None:
+                    bar.total = self.total_steps
+            if self.step % c["ckpt_every"] == 0 or self.step == self.total_steps:
                 self.save_checkpoint()
             if stop_after is not None and self.step >= stop_after:
                 break
         if bar is not None:
             bar.close()
         self.train_seconds = time.perf_counter() - t0
+
+    def _fit_time_budget(self, pace: tuple[float, int]) -> tuple[float, int]:
+        """Set total_steps to what the rest of conf["time_budget_s"] allows at the pace since `pace`
+        (time, step), at most conf["steps"]; returns the new reference (now, step)."""
+        now = time.perf_counter()
+        per_step = (now - pace[0]) / max(self.step - pace[1], 1)
+        left = float(self.conf["time_budget_s"]) - self.elapsed_s
+        fits = min(self.step + max(int(left / max(per_step, 1e-9)), 0), int(self.conf["steps"]))
+        if fits != self.total_steps:
+            log.info(
+                "time budget %.0f s: %d steps instead of %d (%.0f s spent, %.3f s per step)",
+                self.conf["time_budget_s"],
+                fits,
+                self.total_steps,
+                self.elapsed_s,
+                per_step,
+            )
+            self.total_steps = fits
+        return now, self.step
 
     # ---- evaluation and export
     @torch.no_grad()
