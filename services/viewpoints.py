@@ -69,6 +69,13 @@ _BASE: dict[str, Any] = {
         "extra_height_fractions": [],  # more views per aerial camera at these fractions (named P-<stem>-hNN)
         "max_width": 1024,  # views keep the aerial camera's field of view at this width
         "views_per_ground_image": None,  # None: the conf's views_per_ground_image
+        # which paper views serve a ground image best: "covisible" (with a depth probe: the larger the
+        # fraction of what the ground camera sees that the view sees too, at least min_covisible),
+        # "covisible-heading" (of those, the most alike in heading and distance) or "target" (the ground
+        # camera sees the view's target; the heading and distance between them)
+        "relevance": "covisible",
+        "min_covisible": 0.05,
+        "surface": "points",  # what the ground camera sees (see ground.surface)
     },
     "ground": {
         "look_ahead_m": 15.0,  # target when the optical axis meets nothing in [min_target_m, max_target_m]
@@ -78,14 +85,13 @@ _BASE: dict[str, Any] = {
         # the ground cameras' heights from the terrain under them: GNSS heights are the noisiest part of a
         # POS (the synthetic presets': 4 m std, some cameras metres underground or in the air), a camera on
         # a walker or a car stands camera_height_m above the street. The terrain's height: the low quantile
-        # of a nadir depth probe within terrain_radius_m, else of the sparse points within
-        # terrain_points_radius_m; fused with the POS height by their standard deviations (terrain_std_m)
+        # of the aerial model's sparse points within terrain_radius_m (a CPU-trained 3DGS's depth seen from
+        # above is metres too low there), fused with the POS height by their std (terrain_std_m)
         "height_from_terrain": True,
         "terrain_std_m": 0.5,
-        "terrain_radius_m": 4.0,
-        "terrain_points_radius_m": 10.0,
+        "terrain_radius_m": 10.0,
         "terrain_quantile": 0.1,
-        "terrain_max_drop_m": 30.0,  # how far below the model's terrain (terrain_z) a depth probe may reach
+        "terrain_min_points": 10,
         # (height above the ground camera in metres, placement), in order of preference: the first
         # `views_per_ground_image` that are not occluded are kept. Placements: "above" (straight above
         # the ground camera), "back" (moved back along its heading by the height: a 45 degree line),
@@ -108,9 +114,13 @@ _BASE: dict[str, Any] = {
         # keypoints through the aerial points of the other views (services.transfer)
         "keep_without_aerial": True,
         # with a depth probe: a view must see at least this fraction of the surface the ground camera sees
-        # from its POS pose (probed `covisibility_width` pixels wide; 0: unchecked)
+        # from its POS pose (probed `covisibility_width` pixels wide; 0: unchecked). That surface: "depth",
+        # its own depth probe (a CPU-trained 3DGS seen from the street shows floaters near it), or
+        # "points", the aerial model's sparse points it sees (nearest per 4 px: mostly the street near it,
+        # which views from above do not see: few placements pass 0.5)
         "min_covisible": 0.5,
         "covisibility_width": 96,
+        "surface": "depth",
     },
     "candidates": {
         "aerial": 4,  # candidate aerial images per view
@@ -347,10 +357,56 @@ class Scene:
         x_cam = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
         return (x_cam - pose.t[None]) @ pose.R  # R^T (x - t)
 
-    def covisible_fraction(self, points: np.ndarray, camera: Camera, pose: Pose, width: int) -> float | None:
-        """The fraction of `points` (N, 3) the camera sees: in its image and not hidden (its depth probe
-        agrees with their depth within 5% + 0.5 m); None without a depth probe or points."""
-        probe = None if points is None or len(points) == 0 else self.depth_probe(camera, pose, width)
+    def visible_points(
+        self, camera: Camera, pose: Pose, width: int, max_dist: float, cell: int = 4
+    ) -> np.ndarray:
+        """(N, 3) sparse points of the aerial model the camera sees: in its image (scaled to `width`
+        pixels), up to max_dist away, the nearest in each `cell` x `cell` pixels (those behind it hidden).
+        The ground cameras' surface where a depth probe from their height is not to be trusted (a 3DGS
+        trained on aerial images, seen from the street)."""
+        pc = probe_camera(camera, width)
+        if len(self.points) == 0:
+            return np.zeros((0, 3))
+        uv, z = pose.project(pc.K, self.points)
+        inside = (
+            (z > 0.5) & (z <= max_dist) & (uv >= 0).all(1) & (uv[:, 0] < pc.width) & (uv[:, 1] < pc.height)
+        )
+        idx = np.flatnonzero(inside)
+        cells = (uv[idx] // cell).astype(np.int64)
+        key = cells[:, 1] * (pc.width // cell + 1) + cells[:, 0]
+        order = np.lexsort((z[idx], key))
+        first = np.ones(len(order), bool)
+        first[1:] = key[order][1:] != key[order][:-1]
+        return self.points[idx[order[first]]]
+
+    def ground_surface(self, g: str, conf: dict, max_dist: float, kind: str) -> np.ndarray | None:
+        """What ground camera g sees, for covisibility checks: `kind` "points" (visible_points) or
+        "depth" (visible_surface: its depth probe), probed conf["ground"]["covisibility_width"] pixels
+        wide; None when there is nothing."""
+        width = conf["ground"]["covisibility_width"]
+        cam, pose = self.ground_cameras[g], self.ground_poses[g]
+        if kind == "points":
+            pts = self.visible_points(cam, pose, width, max_dist)
+        elif kind == "depth":
+            pts = self.visible_surface(cam, pose, width, max_dist)
+        else:
+            raise ValueError(f"unknown surface {kind!r} (points, depth)")
+        return pts if pts is not None and len(pts) else None
+
+    def covisible_fraction(
+        self,
+        points: np.ndarray,
+        camera: Camera,
+        pose: Pose,
+        width: int,
+        probe: tuple[Camera, np.ndarray] | None = None,
+    ) -> float | None:
+        """The fraction of `points` (N, 3) the camera sees: in its image and not hidden (its depth probe,
+        or `probe` made by depth_probe, agrees with their depth within 5% + 0.5 m); None without a depth
+        probe or points."""
+        if points is None or len(points) == 0:
+            return None
+        probe = probe or self.depth_probe(camera, pose, width)
         if probe is None:
             return None
         pc, d = probe
@@ -542,8 +598,8 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
     ]
     min_cov = float(gc["min_covisible"] or 0.0)
     surface = (
-        scene.visible_surface(cam_g, pose_g, gc["covisibility_width"], 1.5 * gc["max_target_m"])
-        if min_cov > 0
+        scene.ground_surface(g, conf, 1.5 * gc["max_target_m"], gc["surface"])
+        if min_cov > 0 and scene.depth_fn
         else None
     )
     out = []
@@ -621,14 +677,49 @@ def _relevance(view: ViewSpec, g: str, scene: Scene, conf: dict) -> float | None
     return heading + 0.5 * dist
 
 
+def _covisible_scores(views: list[ViewSpec], g: str, scene: Scene, conf: dict, probes: dict) -> list | None:
+    """(-covisible fraction, heading and distance term, name) of the views that see at least
+    paper.min_covisible of what ground image g sees; None without a depth probe. `probes`: the views'
+    depth probes, filled as they are made."""
+    width = conf["ground"]["covisibility_width"]
+    max_dist = conf["candidates"]["max_ground_distance_m"]
+    pose_g = scene.ground_poses[g]
+    surface = scene.ground_surface(g, conf, max_dist, conf["paper"]["surface"]) if scene.depth_fn else None
+    if surface is None:
+        return None
+    out = []
+    for v in views:
+        if np.linalg.norm(pose_g.center - v.target) > 2 * max_dist:
+            continue
+        if v.name not in probes:
+            probes[v.name] = scene.depth_probe(v.camera, v.pose, width)
+        cov = scene.covisible_fraction(surface, v.camera, v.pose, width, probes[v.name])
+        if cov is not None and cov >= conf["paper"]["min_covisible"]:
+            hv, hg = _horizontal(v.center - v.target), _horizontal(pose_g.center - v.target)
+            heading = angle_deg(hv, hg) if hv is not None and hg is not None else 90.0
+            alike = heading + 0.5 * float(np.linalg.norm(pose_g.center - v.target))
+            out.append(
+                (-cov, alike, v.name) if conf["paper"]["relevance"] == "covisible" else (alike, -cov, v.name)
+            )
+    return sorted(out)
+
+
 def select_paper(views: list[ViewSpec], scene: Scene, conf: dict, n_per_ground: int) -> list[ViewSpec]:
-    """The paper views most relevant to each ground image (n per ground image), each made to include
-    that ground image among its candidates."""
+    """The paper views most relevant to each ground image (n per ground image, conf["paper"]["relevance"]),
+    each made to include that ground image among its candidates."""
     keep: dict[str, ViewSpec] = {}
+    by_name = {v.name: v for v in views}
+    probes: dict[str, tuple[Camera, np.ndarray] | None] = {}
     for g in sorted(scene.ground_poses):
-        scored = sorted((s, v.name) for v in views if (s := _relevance(v, g, scene, conf)) is not None)
-        by_name = {v.name: v for v in views}
-        for _, name in scored[:n_per_ground]:
+        scored = None
+        if conf["paper"]["relevance"] in ("covisible", "covisible-heading"):
+            scored = _covisible_scores(views, g, scene, conf, probes)
+        elif conf["paper"]["relevance"] != "target":
+            known = "covisible, covisible-heading, target"
+            raise ValueError(f"unknown paper.relevance {conf['paper']['relevance']!r} ({known})")
+        if scored is None:
+            scored = sorted((s, v.name) for v in views if (s := _relevance(v, g, scene, conf)) is not None)
+        for *_, name in scored[:n_per_ground]:
             v = keep.setdefault(name, by_name[name])
             if g not in v.ground:
                 v.ground = [*v.ground, g]
@@ -759,33 +850,19 @@ def load_scene(
     return scene
 
 
-def terrain_height(scene: Scene, xy: np.ndarray, gc: dict) -> tuple[float | None, str]:
-    """(height, source) of the terrain at the horizontal position `xy`: the `terrain_quantile` of the
-    surface heights a nadir depth probe sees within `terrain_radius_m` (the street beside a car or under
-    a tree's crown, not its roof; when it sees the model there), else of the sparse points within
-    `terrain_points_radius_m`."""
-    q = gc["terrain_quantile"]
-    top = float(max(np.max(scene.points[:, 2]) if len(scene.points) else scene.terrain_z, scene.terrain_z))
-    top += 20.0
-    w = 32
-    f = 0.5 * w * (top - scene.terrain_z) / gc["terrain_radius_m"]
-    nadir = Camera("PINHOLE", w, w, [f, f, w / 2, w / 2])
-    center = np.array([xy[0], xy[1], top])
-    probe = scene.depth_probe(nadir, look_at(center, center - [0.0, 0.0, 1.0]), w)
-    if probe is not None:
-        d = probe[1]
-        # the surface, not the background of rays that miss the model (0, infinite or far below it)
-        d = d[np.isfinite(d) & (d > 0) & (d <= top - scene.terrain_z + gc["terrain_max_drop_m"])]
-        if d.size >= w * w // 4:
-            return float(np.quantile(top - d, q)), "depth"
-    if len(scene.points):
-        near = (
-            np.linalg.norm(scene.points[:, :2] - np.asarray(xy)[None], axis=1)
-            <= gc["terrain_points_radius_m"]
-        )
-        if near.sum() >= 10:
-            return float(np.quantile(scene.points[near, 2], q)), "points"
-    return None, "none"
+def terrain_height(scene: Scene, xy: np.ndarray, gc: dict) -> float | None:
+    """Height of the terrain at the horizontal position `xy`: the `terrain_quantile` of the heights of
+    the sparse points within `terrain_radius_m` (the street, not the roofs and facades beside it); None
+    with fewer than `terrain_min_points` there."""
+    if len(scene.points) == 0:
+        return None
+    near = (
+        np.linalg.norm(scene.points[:, :2] - np.asarray(xy, float)[None, :2], axis=1)
+        <= gc["terrain_radius_m"]
+    )
+    if near.sum() < gc["terrain_min_points"]:
+        return None
+    return float(np.quantile(scene.points[near, 2], gc["terrain_quantile"]))
 
 
 def place_ground_on_terrain(scene: Scene, gc: dict) -> dict[str, dict]:
@@ -795,7 +872,7 @@ def place_ground_on_terrain(scene: Scene, gc: dict) -> dict[str, dict]:
     out = {}
     for n, pose in sorted(scene.ground_poses.items()):
         C = pose.center
-        ground, source = terrain_height(scene, C[:2], gc)
+        ground = terrain_height(scene, C[:2], gc)
         if ground is None:
             continue
         s_xy, s_pos, s_att = scene.ground_std[n]
@@ -804,7 +881,7 @@ def place_ground_on_terrain(scene: Scene, gc: dict) -> dict[str, dict]:
         z = (w_pos * C[2] + w_ter * (ground + gc["camera_height_m"])) / (w_pos + w_ter)
         scene.ground_poses[n] = Pose.from_center(pose.R.T, np.array([C[0], C[1], z]))
         scene.ground_std[n] = (s_xy, float((w_pos + w_ter) ** -0.5), s_att)
-        out[n] = {"pos_z": float(C[2]), "terrain_z": ground, "terrain_from": source, "z": float(z)}
+        out[n] = {"pos_z": float(C[2]), "terrain_z": ground, "z": float(z)}
     if out:
         moved = np.array([abs(d["z"] - d["pos_z"]) for d in out.values()])
         logger.info(

@@ -306,27 +306,36 @@ def test_ground_aware_views_without_aerial_candidates():
     assert vp.plan(scene, vp._merge(conf, {"ground": {"keep_without_aerial": False}})) == []
 
 
+def _street_points(seed: int = 0) -> np.ndarray:
+    """Sparse points of a street (z = 0, y < 0) and of a 10 m high wall along it (y = 0) with its roof."""
+    rng = np.random.default_rng(seed)
+    street = rng.uniform([-30, -30, -0.05], [30, 0, 0.05], (600, 3))
+    wall = np.stack([rng.uniform(-30, 30, 300), np.zeros(300), rng.uniform(0, 10, 300)], 1)
+    roof = rng.uniform([-30, 0, 9.95], [30, 10, 10.05], (200, 3))
+    return np.concatenate([street, wall, roof])
+
+
 def test_ground_cameras_are_placed_on_the_terrain():
     """GNSS heights are the noisiest part of a ground POS: each ground camera's height is fused with
-    camera_height_m above the terrain under it (the low quantile of a nadir depth probe: the street
-    beside a wall, not its top), weighted by the POS's std_z and terrain_std_m."""
+    camera_height_m above the terrain under it (the low quantile of the sparse points around it: the
+    street beside a wall, not its roof), weighted by the POS's std_z and terrain_std_m."""
     gc = vp.confs["both"]["ground"]
     ground = {
         "ground/G0001.jpg": pose_ypr([0.0, -15.0, -3.0], 0.0, 0.0),  # 3 m underground (std_z 4 m)
         "ground/G0002.jpg": pose_ypr([5.0, -2.0, 9.0], 0.0, 0.0),  # 9 m up, 2 m from the 10 m wall
         "ground/G0003.jpg": pose_ypr([-5.0, -20.0, 3.0], 0.0, 0.0),  # an RTK height (std_z 5 cm)
     }
-    scene = make_scene(ground)
+    scene = make_scene(dict(ground))
+    scene.points = _street_points()
     scene.ground_std["ground/G0003.jpg"] = (0.05, 0.05, 1.0)
-    scene.depth_fn = raycast
-    assert vp.terrain_height(scene, np.array([5.0, -2.0]), gc) == (pytest.approx(0.0, abs=1e-3), "depth")
+    assert abs(vp.terrain_height(scene, np.array([5.0, -2.0]), gc)) < 0.05
     heights = vp.place_ground_on_terrain(scene, gc)
     assert heights == scene.ground_heights and set(heights) == set(ground)
     w_pos, w_ter = 1 / 4.0**2, 1 / gc["terrain_std_m"] ** 2
     for g, pos_z in (("ground/G0001.jpg", -3.0), ("ground/G0002.jpg", 9.0)):
-        want = (w_pos * pos_z + w_ter * gc["camera_height_m"]) / (w_pos + w_ter)
-        assert scene.ground_poses[g].center[2] == pytest.approx(want, abs=1e-3)
-        assert abs(scene.ground_poses[g].center[2] - gc["camera_height_m"]) < 0.15
+        want = (w_pos * pos_z + w_ter * (heights[g]["terrain_z"] + gc["camera_height_m"])) / (w_pos + w_ter)
+        assert scene.ground_poses[g].center[2] == pytest.approx(want, abs=1e-6)
+        assert abs(scene.ground_poses[g].center[2] - gc["camera_height_m"]) < 0.2
         assert scene.ground_std[g][1] == pytest.approx((w_pos + w_ter) ** -0.5)
         # only the height moves: the position and the attitude are the POS's
         assert np.allclose(scene.ground_poses[g].center[:2], ground[g].center[:2])
@@ -334,19 +343,35 @@ def test_ground_cameras_are_placed_on_the_terrain():
     assert scene.ground_poses["ground/G0003.jpg"].center[2] == pytest.approx(3.0, abs=0.02)
     # the ground-aware views stand their height above the placed camera
     views = vp.plan(scene, vp._merge(vp.confs["ground-aware"], {"views_per_ground_image": 2}))
+    assert views
     for v in (v for v in views if v.meta["placement"] == "above"):
         assert v.center[2] - scene.ground_poses[v.source].center[2] == pytest.approx(v.meta["height_m"])
-    # without a depth probe: the sparse points around the camera
-    scene = make_scene(ground)
-    rng = np.random.default_rng(0)
-    scene.points = np.concatenate(
-        [
-            rng.uniform([-30, -30, -0.05], [30, 0, 0.05], (500, 3)),
-            rng.uniform([-30, 0, 0], [30, 1, 10], (200, 3)),
-        ]
-    )
-    z, source = vp.terrain_height(scene, np.array([0.0, -15.0]), gc)
-    assert source == "points" and abs(z) < 0.05
-    scene.points = np.zeros((0, 3))
-    assert vp.terrain_height(scene, np.array([0.0, -15.0]), gc) == (None, "none")
+    # too few points around a camera: its POS height stays
+    scene = make_scene(dict(ground))
+    scene.points = _street_points()[:20]
+    assert vp.terrain_height(scene, np.array([0.0, -15.0]), gc) is None
     assert vp.place_ground_on_terrain(scene, gc) == {}
+    assert scene.ground_poses["ground/G0001.jpg"].center[2] == -3.0
+
+
+def test_visible_points_are_the_nearest_sparse_points_in_view():
+    """The ground camera's surface from the aerial model's sparse points: in its image and range, the
+    nearest in each cell (the wall hides what is behind it)."""
+    g = pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)  # looking north at the wall
+    scene = make_scene({"ground/G0001.jpg": g})
+    x, z = np.meshgrid(np.arange(-15, 15, 0.1), np.arange(0, 10, 0.1))
+    wall = np.stack([x.ravel(), np.zeros(x.size), z.ravel()], 1)  # dense: a point in every cell it covers
+    behind = np.stack([np.linspace(-5, 5, 50), np.full(50, 5.0), np.full(50, 3.0)], 1)
+    scene.points = np.concatenate([_street_points(), wall, behind])
+    pts = scene.visible_points(GCAM, g, 96, 60.0)
+    assert len(pts) > 250  # of the 24 x 18 cells of 4 px
+    assert np.all(pts[:, 1] <= 0.05)  # the street and the wall: nothing behind the wall
+    uv, z = g.project(GCAM.K, pts)
+    assert np.all(z > 0) and np.all((uv >= 0).all(1) & (uv[:, 0] < GCAM.width) & (uv[:, 1] < GCAM.height))
+    assert len(scene.visible_points(GCAM, pose_ypr([0.0, -15.0, 1.6], 180.0, 0.0), 96, 10.0)) < len(pts)
+    # the covisibility of a placement with the exact depth agrees with the points' and the probe's surface
+    scene.depth_fn = raycast
+    conf = vp.confs["ground-aware"]
+    pts = scene.ground_surface("ground/G0001.jpg", conf, 60.0, "points")
+    assert scene.covisible_fraction(pts, GCAM, g, 96) > 0.9
+    assert len(scene.ground_surface("ground/G0001.jpg", conf, 60.0, "depth")) > 1000
