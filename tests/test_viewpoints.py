@@ -375,3 +375,26 @@ def test_visible_points_are_the_nearest_sparse_points_in_view():
     pts = scene.ground_surface("ground/G0001.jpg", conf, 60.0, "points")
     assert scene.covisible_fraction(pts, GCAM, g, 96) > 0.9
     assert len(scene.ground_surface("ground/G0001.jpg", conf, 60.0, "depth")) > 1000
+
+
+def test_paper_views_are_chosen_by_what_they_see_of_the_ground_cameras_surface():
+    """paper.relevance "covisible": with a depth probe, the paper views that see most of what the ground
+    camera sees (the aerial model's sparse points in its view) serve it."""
+    g = pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)  # looking north at the wall (y = 0)
+    scene = make_scene({"ground/G0001.jpg": g})
+    x, z = np.meshgrid(np.arange(-15, 15, 0.25), np.arange(0, 10, 0.25))
+    scene.points = np.concatenate([_street_points(), np.stack([x.ravel(), np.zeros(x.size), z.ravel()], 1)])
+    scene.depth_fn = raycast
+    conf = vp._merge(vp.confs["paper"], {"views_per_ground_image": 1})
+    paper = vp.plan_paper(scene, conf)
+    surface = scene.ground_surface("ground/G0001.jpg", conf, 60.0, "points")
+    cov = {v.name: scene.covisible_fraction(surface, v.camera, v.pose, 96) for v in paper}
+    # the oblique from the south sees all of it, those from the east and west a third (the wall at a
+    # grazing angle, the street beside it)
+    assert cov["P-A0001"] > 0.95 and cov["P-A0002"] < 0.5 and cov["P-A0004"] < 0.5
+    (best,) = vp.select_paper(paper, scene, conf, 1)
+    assert best.name == max(cov, key=cov.get) and "ground/G0001.jpg" in best.ground
+    target = vp._merge(conf, {"paper": {"relevance": "target"}})
+    assert [v.name for v in vp.select_paper(vp.plan_paper(scene, target), scene, target, 1)]
+    with pytest.raises(ValueError, match="unknown paper.relevance"):
+        vp.select_paper(paper, scene, vp._merge(conf, {"paper": {"relevance": "nearest"}}), 1)
