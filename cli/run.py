@@ -115,6 +115,9 @@ def run(
     matcher: str = typer.Option("aliked-lightglue", help="aliked-lightglue or sift"),
     sfm_features: str = typer.Option("sift", help="aerial SfM features: sift or aliked"),
     splat_steps: int = typer.Option(3000, help="3DGS training steps"),
+    splat_time_budget: float | None = typer.Option(
+        None, help="seconds of 3DGS training at most (fewer steps on a slow machine; default: no limit)"
+    ),
     splat_max_width: int = typer.Option(400, help="3DGS training image width"),
     max_keypoints: int = typer.Option(1024, help="keypoints per image for matching"),
     seed: int = typer.Option(0, help="random seed"),
@@ -182,6 +185,7 @@ def run(
                 "view_planner": view_planner,
                 "views_per_ground_image": views_per_ground_image,
                 "splat_steps": splat_steps,
+                "splat_time_budget_s": splat_time_budget,
                 "splat_max_width": splat_max_width,
                 "max_keypoints": max_keypoints,
                 "seed": seed,
@@ -435,10 +439,10 @@ def demo(
         "view_planner": view_planner,
         "views_per_ground_image": views_per_ground_image,
         "splat_steps": splat_steps,
+        "splat_time_budget_s": splat_time_budget or None,
         "max_keypoints": max_keypoints,
     }
     settings = {**DEMO_SETTINGS, "renderer": renderer, "scene": str(scene) if renderer == "gt" else None}
-    settings["splat"] = {**DEMO_SETTINGS["splat"], "time_budget_s": splat_time_budget or None}
     job = pipeline.Job.create(
         out / "job",
         scene / "images" / "aerial",

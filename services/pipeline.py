@@ -111,9 +111,9 @@ class Job:
         options: JobOptions | dict | None = None,
         settings: dict | None = None,
     ) -> Job:
-        """Write job.json and the image links; an existing job folder keeps its stage outputs."""
+        """Write job.json and the image links; an existing job folder keeps its stage outputs. Bad options
+        or missing inputs raise before anything is written."""
         root = Path(root)
-        root.mkdir(parents=True, exist_ok=True)
         opts = options if isinstance(options, JobOptions) else JobOptions.model_validate(options or {})
         inputs = {
             "aerial": str(Path(aerial).resolve()),
@@ -131,6 +131,7 @@ class Job:
         settings = dict(settings or {})
         if settings.get("scene"):
             settings["scene"] = str(Path(settings["scene"]).resolve())
+        root.mkdir(parents=True, exist_ok=True)
         job = cls(root, inputs, opts, settings)
         job.save()
         job.link_images()
@@ -211,6 +212,8 @@ class Job:
             "save_test_renders": False,
             "ckpt_every": max(1, steps // 10),
         }
+        if self.options.splat_time_budget_s is not None:
+            over["time_budget_s"] = float(self.options.splat_time_budget_s)
         return _merge(_merge(c, over), self.settings["splat"])
 
     def viewpoint_conf(self) -> dict:

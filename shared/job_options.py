@@ -71,6 +71,13 @@ class JobOptions(BaseModel):
         4, ge=1, le=16, description="Intermediate views rendered per ground image"
     )
     splat_steps: int = Field(7000, ge=100, le=200_000, description="3DGS training iterations")
+    splat_time_budget_s: float | None = Field(
+        None,
+        ge=1,
+        le=7 * 24 * 3600,
+        description="Seconds of 3DGS training at most: fewer than splat_steps iterations when the machine is"
+        " slower (the run's length follows the pace of its last iterations); null: all of them",
+    )
     splat_max_width: int = Field(
         1600, ge=64, le=8192, description="Aerial images are downscaled to this width for 3DGS training"
     )
@@ -110,9 +117,13 @@ def option_specs() -> list[dict[str, Any]]:
     defaults = JobOptions().model_dump(mode="json")
     out = []
     for name, prop in schema["properties"].items():
+        kinds = [b for b in prop.get("anyOf", [prop]) if b.get("type") != "null"]
+        nullable = len(kinds) < len(prop.get("anyOf", [prop]))
+        if len(kinds) == 1:  # an optional value: its kind's type and bounds
+            prop = {**kinds[0], **{k: v for k, v in prop.items() if k != "anyOf"}}
         spec: dict[str, Any] = {
             "name": name,
-            "type": _type_name(prop),
+            "type": _type_name(prop) + (" | null" if nullable else ""),
             "default": defaults[name],
             "help": prop.get("description", ""),
         }

@@ -155,3 +155,15 @@ def test_demo_rejects_a_negative_time_budget(tmp_path):
     assert result.exit_code == 2
     assert "--splat-time-budget must be >= 0 seconds" in result.output
     assert not (tmp_path / "demo").exists()
+
+
+def test_run_rejects_a_time_budget_under_a_second(tmp_path):
+    """The job option splat_time_budget_s (API and CLI): at least 1 s; nothing is created otherwise."""
+    args = [str(tmp_path / d) for d in ("aerial", "ground", "pos.csv", "job")]
+    for d in ("aerial", "ground"):
+        (tmp_path / d).mkdir()
+    (tmp_path / "pos.csv").write_text("name,lat,lon,h\n")
+    result = runner.invoke(app, ["run", *args, "--splat-time-budget", "0.5"])
+    assert result.exit_code == 2
+    assert "splat_time_budget_s" in result.output
+    assert not (tmp_path / "job").exists()

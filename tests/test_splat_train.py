@@ -536,3 +536,16 @@ def test_cpu_blur_and_ssim_match_conv2d():
     (g2,) = torch.autograd.grad(s2, a)
     torch.testing.assert_close(g1, g2)
     assert float(ssim(b, b)) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_the_job_option_sets_the_trainers_time_budget(tmp_path):
+    from services.pipeline import Job
+    from shared.job_options import JobOptions, option_specs
+
+    job = Job(tmp_path, {}, JobOptions(splat_time_budget_s=600), {"splat_backend": "cpu"})
+    assert job.splat_conf()["time_budget_s"] == 600.0
+    assert Job(tmp_path, {}, JobOptions(), {"splat_backend": "cpu"}).splat_conf()["time_budget_s"] is None
+    with pytest.raises(ValueError):
+        JobOptions(splat_time_budget_s=0)
+    spec = next(s for s in option_specs() if s["name"] == "splat_time_budget_s")
+    assert spec["type"] == "number | null" and spec["minimum"] == 1 and spec["default"] is None
