@@ -114,7 +114,8 @@ _BASE: dict[str, Any] = {
         # keypoints through the aerial points of the other views (services.transfer)
         "keep_without_aerial": True,
         # with a depth probe: a view must see at least this fraction of the surface the ground camera sees
-        # from its POS pose (probed `covisibility_width` pixels wide; 0: unchecked). That surface: "depth",
+        # from its POS pose (probed `covisibility_width` pixels wide; 0: unchecked; when no placement does,
+        # the unoccluded ones are kept, the most covisible first). That surface: "depth",
         # its own depth probe (a CPU-trained 3DGS seen from the street shows floaters near it), or
         # "points", the aerial model's sparse points it sees (nearest per 4 px: mostly the street near it,
         # which views from above do not see: few placements pass 0.5)
@@ -580,7 +581,9 @@ def _horizontal(v: np.ndarray) -> np.ndarray | None:
 
 
 def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
-    """All placements of conf["ground"]["placements"] for ground image g, in order, occluded ones dropped."""
+    """The placements of conf["ground"]["placements"] for ground image g, in order, occluded ones dropped
+    and those that see less than min_covisible of the ground camera's surface too; when none is left,
+    those, the most covisible first."""
     gc = conf["ground"]
     cam_g, pose_g = scene.ground_cameras[g], scene.ground_poses[g]
     T, how = ground_target(g, scene, conf)
@@ -602,7 +605,7 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
         if min_cov > 0 and scene.depth_fn
         else None
     )
-    out = []
+    out, weak = [], []  # weak: unoccluded but below min_cov, (covisible fraction, view)
     for height, placement in gc["placements"]:
         if placement == "above":
             C = C_g + np.array([0.0, 0.0, height])
@@ -625,29 +628,39 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
             continue
         pose = look_at(C, T)
         cov = scene.covisible_fraction(surface, cam, pose, gc["covisibility_width"])
+        view = ViewSpec(
+            f"G-{_stem(g)}-{placement}{int(round(height)):02d}",
+            "ground-aware",
+            g,
+            cam,
+            pose,
+            T,
+            meta={
+                "height_m": float(height),
+                "placement": placement,
+                "target_from": how,
+                "pitch_deg": pitch_deg(pose),
+                **({"covisible": cov} if cov is not None else {}),
+                **({"anchor": anchors[0]} if placement == "aerial" else {}),
+            },
+        )
         if cov is not None and cov < min_cov:
             logger.debug(
                 "%s %s %.0f m: sees %.0f%% of what the ground camera sees", g, placement, height, 100 * cov
             )
+            weak.append((cov, view))
             continue
-        out.append(
-            ViewSpec(
-                f"G-{_stem(g)}-{placement}{int(round(height)):02d}",
-                "ground-aware",
-                g,
-                cam,
-                pose,
-                T,
-                meta={
-                    "height_m": float(height),
-                    "placement": placement,
-                    "target_from": how,
-                    "pitch_deg": pitch_deg(pose),
-                    **({"covisible": cov} if cov is not None else {}),
-                    **({"anchor": anchors[0]} if placement == "aerial" else {}),
-                },
-            )
+        out.append(view)
+    if not out and weak:  # a view that sees part of the ground camera's surface beats none
+        weak.sort(key=lambda cv: -cv[0])
+        logger.info(
+            "%s: no placement sees %.0f%% of what the ground camera sees; the best sees %.0f%% (%s)",
+            g,
+            100 * min_cov,
+            100 * weak[0][0],
+            weak[0][1].name,
         )
+        return [v for _, v in weak]
     return out
 
 
@@ -827,14 +840,7 @@ def load_scene(
             continue
         ground_poses[n] = pose
         ground_std[n] = (r.std_xy or 3.0, r.std_z or 5.0, r.std_att or 5.0)
-    # terrain: a low quantile of the sparse points, or the ground cameras' height minus theirs above it
-    z_pts = float(np.quantile(points[:, 2], 0.05)) if len(points) >= 20 else None
-    z_cam = (
-        float(np.median([p.center[2] for p in ground_poses.values()])) - conf["ground"]["camera_height_m"]
-        if ground_poses
-        else None
-    )
-    terrain = z_pts if z_pts is not None else (z_cam if z_cam is not None else 0.0)
+    terrain = scene_terrain_z(points, ground_poses, conf["ground"]["camera_height_m"])
     scene = Scene(
         cams_a,
         poses_a,
@@ -848,6 +854,20 @@ def load_scene(
     if conf["ground"]["height_from_terrain"]:
         place_ground_on_terrain(scene, conf["ground"])
     return scene
+
+
+def scene_terrain_z(points: np.ndarray, ground_poses: dict[str, Pose], camera_height_m: float) -> float:
+    """The scene's terrain height: a low quantile of the sparse points (N, 3) or the ground cameras' median
+    height minus camera_height_m, the lower of the two (over a dense block the aerial model may hold
+    roofs and no street); 0 without either."""
+    z_pts = float(np.quantile(points[:, 2], 0.05)) if len(points) >= 20 else None
+    z_cam = (
+        float(np.median([p.center[2] for p in ground_poses.values()])) - camera_height_m
+        if ground_poses
+        else None
+    )
+    known = [z for z in (z_pts, z_cam) if z is not None]
+    return min(known) if known else 0.0
 
 
 def terrain_height(scene: Scene, xy: np.ndarray, gc: dict) -> float | None:

@@ -291,6 +291,19 @@ def test_ground_aware_skips_views_that_see_little_of_what_the_ground_camera_sees
     views = vp.plan(scene, base)
     assert [v.name for v in views] == ["G-G0001-above10", "G-G0001-back05"]
     assert all(v.meta["covisible"] >= 0.5 for v in views)
+    # when no placement sees enough, the unoccluded ones are kept, the most covisible first
+    seen = vp.ground_view_candidates(
+        "ground/G0001.jpg", scene, vp._merge(base, {"ground": {"min_covisible": 1e-6}})
+    )
+    most = max(v.meta["covisible"] for v in seen)
+    strict = vp._merge(base, {"ground": {"min_covisible": most + 0.01}})
+    cands = vp.ground_view_candidates("ground/G0001.jpg", scene, strict)
+    assert sorted(v.name for v in cands) == ["G-G0001-above10", "G-G0001-back05", "G-G0001-back10"]
+    cov = [v.meta["covisible"] for v in cands]
+    assert cov == sorted(cov, reverse=True) and cov[0] == most and cands[-1].name == "G-G0001-back10"
+    assert [v.name for v in vp.plan(scene, vp._merge(strict, {"views_per_ground_image": 1}))] == [
+        cands[0].name
+    ]
 
 
 def test_ground_aware_views_without_aerial_candidates():
@@ -352,6 +365,18 @@ def test_ground_cameras_are_placed_on_the_terrain():
     assert vp.terrain_height(scene, np.array([0.0, -15.0]), gc) is None
     assert vp.place_ground_on_terrain(scene, gc) == {}
     assert scene.ground_poses["ground/G0001.jpg"].center[2] == -3.0
+
+
+def test_the_scene_terrain_is_the_street_under_a_model_of_roofs():
+    """The terrain height of the scene: the sparse points' low quantile, unless the ground cameras stand
+    lower (an aerial model of a dense block may hold roofs and no street)."""
+    ground = {f"ground/G{i:04d}.jpg": pose_ypr([5.0 * i, -15.0, 1.5 + 0.1 * i], 0.0, 0.0) for i in range(5)}
+    street = _street_points()
+    assert abs(vp.scene_terrain_z(street, ground, 1.5)) < 0.1
+    roofs = street[street[:, 2] > 9.9]
+    assert vp.scene_terrain_z(roofs, ground, 1.5) == pytest.approx(0.2)  # the cameras' median 1.7 - 1.5
+    assert vp.scene_terrain_z(roofs, {}, 1.5) == pytest.approx(10.0, abs=0.1)
+    assert vp.scene_terrain_z(np.zeros((0, 3)), {}, 1.5) == 0.0
 
 
 def test_visible_points_are_the_nearest_sparse_points_in_view():
