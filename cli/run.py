@@ -202,7 +202,7 @@ def run(
     t0 = time.perf_counter()
     try:
         results = run_job(job, from_stage=from_stage, force=force)
-    except pipeline.StageInputsMissing as e:
+    except pipeline.StageError as e:
         _fail(str(e))
     typer.echo(
         f"{out}: {sum(not r['skipped'] for r in results.values())} stage(s) run, "

@@ -484,16 +484,25 @@ def _plan_views(job: Job, report) -> dict:
 
     report(0.0, "planning views")
     r = job.renderer()
-    path = viewpoints.main(
+    path = job.dir("plan") / "views.json"
+    new = viewpoints.main(
         job.viewpoint_conf(),
         job.dir("sfm") / "sparse",
         job.pos,
         job.cameras,
         job.dir("sfm") / "georef.json",
-        job.dir("plan") / "views.json",
+        path.with_name("views.new.json"),
         depth_fn=views.depth_fn(r),
     )
-    return json.loads(path.read_text())["summary"]
+    summary = json.loads(new.read_text())["summary"]
+    if not summary["num_views"]:  # the plan in place (if any) stays
+        new.unlink()
+        raise StageError(
+            f"no intermediate view could be planned (planner {job.viewpoint_conf()['planner']}, ground "
+            f"images covered {summary['ground_covered']}): the log's warnings say why for each ground image"
+        )
+    new.replace(path)
+    return summary
 
 
 def _render_views(job: Job, report) -> dict:
@@ -508,6 +517,8 @@ def _render_views(job: Job, report) -> dict:
 
 def _prune(folder: Path, keep: set[str]) -> None:
     """Remove files of views that are no longer planned."""
+    if not folder.is_dir():  # no view planned: nothing was written
+        return
     for p in folder.iterdir():
         if p.is_file() and p.name not in keep:
             p.unlink()
@@ -723,7 +734,11 @@ assert tuple(REGISTRY) == STAGES, "the registry must follow shared.job_options.S
 
 
 # -- runner --------------------------------------------------------------------------------------
-class StageInputsMissing(ValueError):
+class StageError(ValueError):
+    """A stage cannot go on with what it was given; the message says why (the CLI exits 2 with it)."""
+
+
+class StageInputsMissing(StageError):
     """A stage was asked for before the stages that make its inputs."""
 
 

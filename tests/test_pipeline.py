@@ -242,6 +242,21 @@ def test_a_changed_conf_reruns_that_stage_and_the_ones_after(tiny_job, monkeypat
     assert calls == ["combined"]  # its input (the reducer's output) changed
 
 
+def test_a_plan_without_views_fails_with_the_reason_and_keeps_the_plan(tiny_job):
+    """No placement for any ground image: plan_views fails with a reason the CLI and the API show (a
+    StageError), the plan in place and its marker stay."""
+    job, _, _ = tiny_job
+    plan = job.dir("plan") / "views.json"
+    before, marker = plan.read_bytes(), (job.stages_dir / "plan_views.json").read_bytes()
+    job2 = pipeline.Job.load(job.root)
+    job2.settings["viewpoints"] = {"ground": {"placements": []}}
+    with pytest.raises(pipeline.StageError, match=r"no intermediate view could be planned .*covered 0/4"):
+        pipeline.run_stage(job2, "plan_views", force=True)
+    assert plan.read_bytes() == before and not plan.with_name("views.new.json").exists()
+    assert (job.stages_dir / "plan_views.json").read_bytes() == marker
+    assert pipeline.is_done(pipeline.Job.load(job.root), "plan_views")
+
+
 def test_splat_on_all_images(tiny_job):
     """The optional last stage: a 3DGS on every registered image of the combined model, aerial and
     ground, exported as PLY, with held-out metrics; not run unless selected."""
