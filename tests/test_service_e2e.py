@@ -35,7 +35,10 @@ pytestmark = pytest.mark.slow
 OPTIONS = {
     "sfm_features": "sift",
     "matcher": "aliked-lightglue",
-    "view_planner": "ground-aware",
+    # the service's default; on `tiny` (4 of 10 aerial images registered, roofs, no street) the views from
+    # above the ground cameras show blur the 3DGS never learned and often match nothing; the paper views
+    # (lowered aerial cameras) match the aerial images
+    "view_planner": "both",
     "views_per_ground_image": 1,
     "splat_steps": 1000,  # 300 gives views that match nothing at all on `tiny`
     "splat_max_width": 240,
