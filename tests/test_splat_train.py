@@ -135,10 +135,15 @@ def test_resume_gives_the_same_result(tiny, tmp_path):
         assert torch.equal(sa["exp_avg"], sc["exp_avg"]) and torch.equal(sa["exp_avg_sq"], sc["exp_avg_sq"])
 
 
-def test_time_budget_cuts_the_run_and_decays_the_learning_rate_over_it(tiny, tmp_path):
+def test_time_budget_cuts_the_run_and_decays_the_learning_rate_over_it(tiny, tmp_path, caplog):
     """With time_budget_s the run ends within the budget (checked every budget_every steps at the pace of
-    the last ones), at the means' final learning rate; the checkpoint keeps the cut length and the time."""
+    the last ones), at the means' final learning rate; the checkpoint keeps the cut length and the time.
+    The log tells the new length at INFO when it moves 5% or more from the last length told."""
+    import logging
+
     from services.splat.render import latest_checkpoint
+
+    caplog.set_level(logging.DEBUG, logger="midview.splat")
 
     _, views, pts, cols = tiny
     data = SceneData.from_views(views, pts, cols, test_every=0)
@@ -149,6 +154,13 @@ def test_time_budget_cuts_the_run_and_decays_the_learning_rate_over_it(tiny, tmp
     assert 10 <= tr.step < 100_000 and tr.step == tr.total_steps
     assert tr.elapsed_s < 2.0 + 1.0  # the budget, and what a few steps past its last check take
     assert tr.means_lr(tr.step) == pytest.approx(tr.extent * conf["lr"]["means_final"])
+    told = [100_000]
+    for r in (r for r in caplog.records if r.getMessage().startswith("time budget")):
+        new = int(r.getMessage().split(": ")[1].split(" steps")[0])
+        assert (r.levelno == logging.INFO) == (abs(new - told[-1]) >= 0.05 * told[-1])
+        if r.levelno == logging.INFO:
+            told.append(new)
+    assert len(told) >= 2  # the cut from 100000 steps was told
     again = Trainer(conf, data, tmp_path / "run", backend="cpu")
     again.load_checkpoint(latest_checkpoint(tmp_path / "run"))
     assert (again.step, again.total_steps, again.elapsed_s) == (tr.step, tr.total_steps, tr.elapsed_s)

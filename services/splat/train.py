@@ -342,6 +342,7 @@ class Trainer:
         self.strategy_state: dict = {}
         self.step = 0  # steps done
         self.total_steps = int(self.conf["steps"])  # the run's length: conf["steps"], or less (time budget)
+        self._budget_told = self.total_steps  # the length last logged at INFO
         self.elapsed_s = 0.0  # training time so far, over resumes (checkpoints keep it)
         self.history: list[dict] = []
 
@@ -552,7 +553,13 @@ class Trainer:
         left = float(self.conf["time_budget_s"]) - self.elapsed_s
         fits = min(self.step + max(int(left / max(per_step, 1e-9)), 0), int(self.conf["steps"]))
         if fits != self.total_steps:
-            log.info(
+            # the pace wavers by a few percent: INFO only when the length moves 5% from the last one told
+            told = self._budget_told
+            level = logging.INFO if abs(fits - told) >= 0.05 * told else logging.DEBUG
+            if level == logging.INFO:
+                self._budget_told = fits
+            log.log(
+                level,
                 "time budget %.0f s: %d steps instead of %d (%.0f s spent, %.3f s per step)",
                 self.conf["time_budget_s"],
                 fits,
