@@ -484,25 +484,19 @@ def _plan_views(job: Job, report) -> dict:
 
     report(0.0, "planning views")
     r = job.renderer()
-    path = job.dir("plan") / "views.json"
-    new = viewpoints.main(
-        job.viewpoint_conf(),
-        job.dir("sfm") / "sparse",
-        job.pos,
-        job.cameras,
-        job.dir("sfm") / "georef.json",
-        path.with_name("views.new.json"),
-        depth_fn=views.depth_fn(r),
-    )
-    summary = json.loads(new.read_text())["summary"]
-    if not summary["num_views"]:  # the plan in place (if any) stays
-        new.unlink()
-        raise StageError(
-            f"no intermediate view could be planned (planner {job.viewpoint_conf()['planner']}, ground "
-            f"images covered {summary['ground_covered']}): the log's warnings say why for each ground image"
+    try:
+        path = viewpoints.main(
+            job.viewpoint_conf(),
+            job.dir("sfm") / "sparse",
+            job.pos,
+            job.cameras,
+            job.dir("sfm") / "georef.json",
+            job.dir("plan") / "views.json",
+            depth_fn=views.depth_fn(r),
         )
-    new.replace(path)
-    return summary
+    except viewpoints.NoViews as e:  # the plan in place (if any) stays
+        raise StageError(str(e)) from e
+    return json.loads(path.read_text())["summary"]
 
 
 def _render_views(job: Job, report) -> dict:

@@ -940,6 +940,10 @@ def summary(views: list[ViewSpec], scene: Scene) -> dict:
     }
 
 
+class NoViews(ValueError):
+    """The planner found no view to render."""
+
+
 def main(
     conf: dict,
     sparse: str | Path,
@@ -949,12 +953,18 @@ def main(
     out_path: str | Path,
     depth_fn: DepthFn | None = None,
 ) -> Path:
-    """Plan the intermediate views and write them to `out_path` (views.json)."""
+    """Plan the intermediate views and write them to `out_path` (views.json). Raises NoViews, writing
+    nothing, when no view can be planned."""
     conf = _merge(_BASE, conf)
     with stage(f"viewpoints:{conf['planner']}", logger):
         scene = load_scene(sparse, pos, cameras, georef, depth_fn, conf)
         views = plan(scene, conf)
         info = summary(views, scene)
+        if not views:
+            raise NoViews(
+                f"no intermediate view could be planned (planner {conf['planner']}, ground images covered "
+                f"{info['ground_covered']}): the log's warnings say why for each ground image"
+            )
         frame = georef if isinstance(georef, LocalFrame) else read_georef_frame(georef)
         write_views(
             out_path,
