@@ -482,6 +482,8 @@ def demo(
                     pipeline._set_threads(job)
                     found = direct_baselines(scene, out / "baselines", aliked, sift, job.features_path)
             timings["baselines"] = time.perf_counter() - t0  # after the pipeline
+    except pipeline.StageError as e:
+        _fail(str(e))
     finally:
         if child is not None:  # done, or the pipeline failed: stop the child either way
             child.stop()

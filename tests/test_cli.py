@@ -157,6 +157,23 @@ def test_demo_rejects_a_negative_time_budget(tmp_path):
     assert not (tmp_path / "demo").exists()
 
 
+def test_demo_exits_with_the_reason_when_a_stage_cannot_go_on(tiny_scene, tmp_path, monkeypatch):
+    """A stage that cannot go on with its inputs (pipeline.StageError, e.g. a plan without views) ends
+    the demo with its reason and exit status 2, not a traceback."""
+    import cli.run
+    from services import pipeline
+
+    def plan_fails(job, stages=None, from_stage=None, force=False):
+        raise pipeline.StageError("no intermediate view could be planned (planner paper, ...)")
+
+    monkeypatch.setattr(cli.run, "run_job", plan_fails)
+    (tmp_path / "demo").mkdir()
+    (tmp_path / "demo" / "scene").symlink_to(tiny_scene)  # a complete scene: not synthesised again
+    result = runner.invoke(app, ["demo", str(tmp_path / "demo"), "--preset", "tiny", "--no-baselines"])
+    assert result.exit_code == 2, result.output
+    assert "no intermediate view could be planned" in result.output and "Traceback" not in result.output
+
+
 def test_run_rejects_a_time_budget_under_a_second(tmp_path):
     """The job option splat_time_budget_s (API and CLI): at least 1 s; nothing is created otherwise."""
     args = [str(tmp_path / d) for d in ("aerial", "ground", "pos.csv", "job")]
