@@ -1,12 +1,17 @@
-"""The distributed service end to end: the synthetic `tiny` survey uploaded over HTTP to the API served by
-a uvicorn process (PostgreSQL, SeaweedFS S3, the Celery dispatcher), a job run by a real Celery worker
-process through Redis, its results downloaded through their presigned S3 URLs and compared with those of
-the `midview run` command on the same input; then the job rerun from match_views with the worker's pool
-process killed (SIGKILL) in the middle of a view-matching task.
+"""The distributed service end to end: a synthetic survey (`tiny` with two more aerial stations) uploaded
+over HTTP to the API served by a uvicorn process (PostgreSQL, SeaweedFS S3, the Celery dispatcher), a job
+run by a real Celery worker process through Redis, its results downloaded through their presigned S3 URLs
+and compared with those of the `midview run` command on the same input; then the job rerun from
+match_views with the worker's pool process killed (SIGKILL) in the middle of a view-matching task.
 
 Both sides run with MIDVIEW_NUM_THREADS=1 (COLMAP) and torch_threads 1: with one thread every stage is
 deterministic, so the results must be identical, not just close. (With several threads COLMAP's mapper
 is not: the number of 3D points of `tiny` varies by a few between runs.)
+
+The survey is `tiny` with a 2 x 2 grid of aerial stations, as in test_pipeline: tiny's own two stations
+register 4 of their 10 aerial images, mostly roofs, and its 3DGS renders views that match little or
+nothing (how little depends on the machine); with four stations all 20 register and the paper views match
+the aerial images.
 """
 
 from __future__ import annotations
@@ -30,17 +35,16 @@ from shared.job_options import DEFAULT_STAGES as STAGES
 
 pytestmark = pytest.mark.slow
 
-# small enough for `tiny` on 2 CPU cores (about a minute for the whole pipeline); every option but
-# `stages` (all of them on both sides) is given, so that neither side's defaults matter
+# small enough for the survey on 2 CPU cores (one to two minutes for the whole pipeline); every option
+# but `stages` (all of them on both sides) is given, so that neither side's defaults matter
 OPTIONS = {
     "sfm_features": "sift",
     "matcher": "aliked-lightglue",
-    # the service's default; on `tiny` (4 of 10 aerial images registered, roofs, no street) the views from
-    # above the ground cameras show blur the 3DGS never learned and often match nothing; the paper views
-    # (lowered aerial cameras) match the aerial images
+    # the service's default; the views above the ground cameras show a street that a 1000-step 3DGS of
+    # aerial images at 240 px barely learned and match little; the paper views match the aerial images
     "view_planner": "both",
     "views_per_ground_image": 1,
-    "splat_steps": 1000,  # 300 gives views that match nothing at all on `tiny`
+    "splat_steps": 1000,  # 300 gives views that match nothing at all
     "splat_max_width": 240,
     "max_keypoints": 1024,
     "seed": 0,
@@ -162,7 +166,19 @@ def _download(service, job_id: str, name: str, dest: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def first_run(service, tiny_survey, tmp_path_factory):
+def survey(tmp_path_factory) -> Path:
+    """`tiny` (seed 0) with a 2 x 2 grid of aerial stations: 20 aerial and 4 ground images."""
+    import copy
+
+    from services import synth
+
+    conf = copy.deepcopy(synth.confs["tiny"])
+    conf["aerial"]["grid"] = [2, 2]
+    return synth.main(conf, tmp_path_factory.mktemp("survey") / "tiny22", seed=0)
+
+
+@pytest.fixture(scope="module")
+def first_run(service, survey, tmp_path_factory):
     """The job through the service and, at the same time, `midview run` on the same survey folder."""
     folder = tmp_path_factory.mktemp("e2e")
     local_root = folder / "local"
@@ -170,7 +186,7 @@ def first_run(service, tiny_survey, tmp_path_factory):
     t_local = time.monotonic()
     with open(folder / "local.log", "wb") as log:
         local = subprocess.Popen(
-            midview_run_args(tiny_survey, local_root, OPTIONS),
+            midview_run_args(survey, local_root, OPTIONS),
             cwd=ROOT,
             env=env,
             stdout=log,
@@ -179,7 +195,7 @@ def first_run(service, tiny_survey, tmp_path_factory):
     try:
         c, h = service.client, service.tenant.headers
         t0 = time.monotonic()
-        pid = upload_survey(c, service.tenant, tiny_survey, service.storage)
+        pid = upload_survey(c, service.tenant, survey, service.storage)
         t_upload = time.monotonic() - t0
         r = c.post(f"/projects/{pid}/jobs", json={"options": OPTIONS}, headers=h)
         assert r.status_code == 201, r.text
