@@ -580,13 +580,76 @@ def _horizontal(v: np.ndarray) -> np.ndarray | None:
     return h / n if n > 1e-6 else None
 
 
+def surface_targets(g: str, scene: Scene, conf: dict) -> list[np.ndarray]:
+    """Points of what ground camera g sees (its depth probe at a grid of image positions, within
+    [min_target_m, max_target_m]), the nearest its principal point first: other targets for its views
+    when every line of sight to the one on its principal ray is blocked. [] without a depth probe."""
+    gc = conf["ground"]
+    cam, pose = scene.ground_cameras[g], scene.ground_poses[g]
+    probe = scene.depth_probe(cam, pose, conf["target"]["probe_width"])
+    if probe is None:
+        return []
+    pc, d = probe
+    K, r = pc.K, 2
+    found = []
+    for fy in (0.35, 0.5, 0.65):
+        for fx in (0.15, 0.3, 0.5, 0.7, 0.85):
+            u, v = int(fx * pc.width), int(fy * pc.height)
+            patch = d[max(0, v - r) : v + r + 1, max(0, u - r) : u + r + 1]
+            good = patch[np.isfinite(patch) & (patch > 0)]
+            if good.size < patch.size // 2:
+                continue
+            z = float(np.median(good))
+            if not gc["min_target_m"] <= z <= gc["max_target_m"]:
+                continue
+            x = np.array([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z])
+            found.append((float(np.hypot(fx - 0.5, fy - 0.5)), (x - pose.t) @ pose.R))
+    return [X for _, X in sorted(found, key=lambda fX: fX[0])]
+
+
 def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
     """The placements of conf["ground"]["placements"] for ground image g, in order, occluded ones dropped
     and those that see less than min_covisible of the ground camera's surface too; when none is left,
-    those, the most covisible first."""
+    those, the most covisible first. When every placement's line of sight to the target on the ground
+    camera's principal ray is blocked, the same with the other targets of surface_targets, in turn."""
     gc = conf["ground"]
-    cam_g, pose_g = scene.ground_cameras[g], scene.ground_poses[g]
+    min_cov = float(gc["min_covisible"] or 0.0)
+    surface = (
+        scene.ground_surface(g, conf, 1.5 * gc["max_target_m"], gc["surface"])
+        if min_cov > 0 and scene.depth_fn
+        else None
+    )
     T, how = ground_target(g, scene, conf)
+    out, weak = _placements(g, T, how, surface, scene, conf)
+    if not out and not weak:
+        for T in surface_targets(g, scene, conf):
+            out, weak = _placements(g, T, "surface", surface, scene, conf)
+            if out or weak:
+                logger.info(
+                    "%s: every line of sight to its target is blocked; another point it sees serves", g
+                )
+                break
+    if not out and weak:  # a view that sees part of the ground camera's surface beats none
+        weak.sort(key=lambda cv: -cv[0])
+        logger.info(
+            "%s: no placement sees %.0f%% of what the ground camera sees; the best sees %.0f%% (%s)",
+            g,
+            100 * min_cov,
+            100 * weak[0][0],
+            weak[0][1].name,
+        )
+        return [v for _, v in weak]
+    return out
+
+
+def _placements(
+    g: str, T: np.ndarray, how: str, surface: np.ndarray | None, scene: Scene, conf: dict
+) -> tuple[list[ViewSpec], list[tuple[float, ViewSpec]]]:
+    """The unoccluded placements looking at target T: (those that see min_covisible of `surface` or
+    unchecked, [(covisible fraction, view)] of those that see less)."""
+    gc = conf["ground"]
+    min_cov = float(gc["min_covisible"] or 0.0)
+    cam_g, pose_g = scene.ground_cameras[g], scene.ground_poses[g]
     C_g = pose_g.center
     back = _horizontal(C_g - T)
     if back is None:
@@ -599,12 +662,6 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
     anchors = [
         n for _, n in aerial_candidates(probe, scene, _merge(conf, {"candidates": {"skip_nadir": True}}))
     ]
-    min_cov = float(gc["min_covisible"] or 0.0)
-    surface = (
-        scene.ground_surface(g, conf, 1.5 * gc["max_target_m"], gc["surface"])
-        if min_cov > 0 and scene.depth_fn
-        else None
-    )
     out, weak = [], []  # weak: unoccluded but below min_cov, (covisible fraction, view)
     for height, placement in gc["placements"]:
         if placement == "above":
@@ -651,17 +708,7 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
             weak.append((cov, view))
             continue
         out.append(view)
-    if not out and weak:  # a view that sees part of the ground camera's surface beats none
-        weak.sort(key=lambda cv: -cv[0])
-        logger.info(
-            "%s: no placement sees %.0f%% of what the ground camera sees; the best sees %.0f%% (%s)",
-            g,
-            100 * min_cov,
-            100 * weak[0][0],
-            weak[0][1].name,
-        )
-        return [v for _, v in weak]
-    return out
+    return out, weak
 
 
 def plan_ground_aware(scene: Scene, conf: dict, n_per_ground: int) -> list[ViewSpec]:

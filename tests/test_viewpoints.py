@@ -306,6 +306,64 @@ def test_ground_aware_skips_views_that_see_little_of_what_the_ground_camera_sees
     ]
 
 
+def arcade_raycast(camera: Camera, pose: Pose) -> np.ndarray:
+    """raycast's terrain and wall with an arcade roof over the street in front of the wall: z = 6,
+    |x| <= 1, -25 <= y <= 0 (under it the wall at eye level; from above it hides that part of the wall)."""
+    depth = raycast(camera, pose).astype(float)
+    depth[depth == 0] = np.inf
+    K = camera.K
+    u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ pose.R
+    c = pose.center
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (6.0 - c[2]) / d[..., 2]
+        x, y = c[0] + t * d[..., 0], c[1] + t * d[..., 1]
+        hit = (t > 0) & (np.abs(x) <= 1.0) & (y >= -25.0) & (y <= 0.0)
+    depth = np.where(hit, np.minimum(depth, t), depth)
+    return np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+
+
+def test_ground_aware_views_look_at_another_point_when_the_target_is_hidden_from_above():
+    """The ground camera looks under an arcade roof at the wall: every placement above it sees the roof,
+    not that target. Its views then look at another point of what it sees (surface_targets), in view."""
+    g = pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)  # looking north at the wall, the target under the roof
+    scene = make_scene({"ground/G0001.jpg": g})
+    # the default placements but aerial30, whose line of sight passes the roof 0.86 of the way to the
+    # target: within occlusion_ratio 0.85 of it, not occluded
+    places = [
+        [10.0, "back"],
+        [20.0, "aerial"],
+        [5.0, "above"],
+        [20.0, "above"],
+        [10.0, "above"],
+        [5.0, "back"],
+    ]
+    conf = vp._merge(
+        vp.confs["ground-aware"], {"views_per_ground_image": 2, "ground": {"placements": places}}
+    )
+    scene.depth_fn = raycast
+    plain = vp.plan(scene, conf)
+    assert plain and all(v.meta["target_from"] == "depth" for v in plain)
+    assert all(np.allclose(v.target, [0.0, 0.0, 1.6], atol=0.2) for v in plain)
+    scene.depth_fn = arcade_raycast
+    T, how = vp.ground_target("ground/G0001.jpg", scene, conf)
+    assert how == "depth" and np.allclose(T, [0.0, 0.0, 1.6], atol=0.2)
+    views = vp.plan(scene, conf)
+    assert len(views) == 2
+    for v in views:
+        assert v.meta["target_from"] == "surface"
+        # on the wall, the street or the roof
+        assert abs(v.target[1]) < 0.1 or abs(v.target[2]) < 0.1 or abs(v.target[2] - 6.0) < 0.1
+        assert not scene.occluded(v.center, v.target, v.camera, conf["ground"]["occlusion_ratio"])
+        assert principal_point_error(v.camera, v.pose, v.target) < 1e-6
+        uv, z = g.project(GCAM.K, v.target[None])
+        assert z[0] > 0 and 0 <= uv[0, 0] < GCAM.width and 0 <= uv[0, 1] < GCAM.height  # the camera sees it
+    targets = vp.surface_targets("ground/G0001.jpg", scene, conf)
+    assert len(targets) > 5 and np.allclose(targets[0], T, atol=0.2)  # the principal point's first
+    scene.depth_fn = None
+    assert vp.surface_targets("ground/G0001.jpg", scene, conf) == []
+
+
 def test_ground_aware_views_without_aerial_candidates():
     """The reducer's 3D links reach a view through the other views' aerial points: ground-aware views no
     aerial image is a candidate of are kept (unless keep_without_aerial is off)."""
