@@ -511,8 +511,6 @@ def _render_views(job: Job, report) -> dict:
 
 def _prune(folder: Path, keep: set[str]) -> None:
     """Remove files of views that are no longer planned."""
-    if not folder.is_dir():  # no view planned: nothing was written
-        return
     for p in folder.iterdir():
         if p.is_file() and p.name not in keep:
             p.unlink()

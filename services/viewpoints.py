@@ -263,13 +263,25 @@ def probe_camera(camera: Camera, width: int) -> Camera:
     return Camera("PINHOLE", w, h, [K[0, 0] * sx, K[1, 1] * sy, K[0, 2] * sx, K[1, 2] * sy])
 
 
+def depth_at(depth: np.ndarray, u: int, v: int, window: int = 5, min_valid_div: int = 3) -> float | None:
+    """Median valid depth in a `window` x `window` patch around pixel (u, v); None when fewer than
+    1/min_valid_div of the patch is valid."""
+    r = max(0, window // 2)
+    patch = depth[max(0, v - r) : v + r + 1, max(0, u - r) : u + r + 1]
+    good = patch[np.isfinite(patch) & (patch > 0)]
+    return float(np.median(good)) if good.size >= max(1, patch.size // min_valid_div) else None
+
+
 def depth_at_center(depth: np.ndarray, window: int = 5) -> float | None:
     """Median valid depth in a window around the image centre (the principal point, for centred K)."""
     h, w = depth.shape
-    r = max(0, window // 2)
-    patch = depth[max(0, h // 2 - r) : h // 2 + r + 1, max(0, w // 2 - r) : w // 2 + r + 1]
-    good = patch[np.isfinite(patch) & (patch > 0)]
-    return float(np.median(good)) if good.size >= max(1, patch.size // 3) else None
+    return depth_at(depth, w // 2, h // 2, window)
+
+
+def unproject(K: np.ndarray, pose: Pose, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """(N, 3) world points at z-depths `z` behind pixels (u, v) (their centres) of a camera (K, pose)."""
+    x_cam = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
+    return (x_cam - pose.t[None]) @ pose.R  # R^T (x - t)
 
 
 def scaled_camera(camera: Camera, max_width: int, fov_scale: float = 1.0) -> Camera:
@@ -353,10 +365,7 @@ class Scene:
             return None
         pc, d = probe
         v, u = np.nonzero(np.isfinite(d) & (d > 0) & (d <= max_dist))
-        z = d[v, u]
-        K = pc.K
-        x_cam = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
-        return (x_cam - pose.t[None]) @ pose.R  # R^T (x - t)
+        return unproject(pc.K, pose, u, v, d[v, u])
 
     def visible_points(
         self, camera: Camera, pose: Pose, width: int, max_dist: float, cell: int = 4
@@ -590,20 +599,14 @@ def surface_targets(g: str, scene: Scene, conf: dict) -> list[np.ndarray]:
     if probe is None:
         return []
     pc, d = probe
-    K, r = pc.K, 2
     found = []
     for fy in (0.35, 0.5, 0.65):
         for fx in (0.15, 0.3, 0.5, 0.7, 0.85):
             u, v = int(fx * pc.width), int(fy * pc.height)
-            patch = d[max(0, v - r) : v + r + 1, max(0, u - r) : u + r + 1]
-            good = patch[np.isfinite(patch) & (patch > 0)]
-            if good.size < patch.size // 2:
-                continue
-            z = float(np.median(good))
-            if not gc["min_target_m"] <= z <= gc["max_target_m"]:
-                continue
-            x = np.array([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z])
-            found.append((float(np.hypot(fx - 0.5, fy - 0.5)), (x - pose.t) @ pose.R))
+            z = depth_at(d, u, v, 5, min_valid_div=2)
+            if z is not None and gc["min_target_m"] <= z <= gc["max_target_m"]:
+                X = unproject(pc.K, pose, np.array([u]), np.array([v]), np.array([z]))[0]
+                found.append((float(np.hypot(fx - 0.5, fy - 0.5)), X))
     return [X for _, X in sorted(found, key=lambda fX: fX[0])]
 
 
@@ -722,6 +725,14 @@ def plan_ground_aware(scene: Scene, conf: dict, n_per_ground: int) -> list[ViewS
     return views
 
 
+def _heading_and_distance(view: ViewSpec, ground_center: np.ndarray) -> float:
+    """The angle (degrees) between the horizontal directions from the view's target to the view and to
+    the ground camera, plus half the ground camera's distance to the target (m)."""
+    hv, hg = _horizontal(view.center - view.target), _horizontal(ground_center - view.target)
+    heading = angle_deg(hv, hg) if hv is not None and hg is not None else 90.0
+    return heading + 0.5 * float(np.linalg.norm(ground_center - view.target))
+
+
 def _relevance(view: ViewSpec, g: str, scene: Scene, conf: dict) -> float | None:
     """How well a view suits ground image g: None if g cannot see its target, else the angle (degrees)
     between their viewing directions plus a distance term."""
@@ -732,9 +743,7 @@ def _relevance(view: ViewSpec, g: str, scene: Scene, conf: dict) -> float | None
         return None
     if not _sees(scene.ground_cameras[g], pose, view.target, cc["ground_margin"]):
         return None
-    hv, hg = _horizontal(view.center - view.target), _horizontal(pose.center - view.target)
-    heading = angle_deg(hv, hg) if hv is not None and hg is not None else 90.0
-    return heading + 0.5 * dist
+    return _heading_and_distance(view, pose.center)
 
 
 def _covisible_scores(views: list[ViewSpec], g: str, scene: Scene, conf: dict, probes: dict) -> list | None:
@@ -755,9 +764,7 @@ def _covisible_scores(views: list[ViewSpec], g: str, scene: Scene, conf: dict, p
             probes[v.name] = scene.depth_probe(v.camera, v.pose, width)
         cov = scene.covisible_fraction(surface, v.camera, v.pose, width, probes[v.name])
         if cov is not None and cov >= conf["paper"]["min_covisible"]:
-            hv, hg = _horizontal(v.center - v.target), _horizontal(pose_g.center - v.target)
-            heading = angle_deg(hv, hg) if hv is not None and hg is not None else 90.0
-            alike = heading + 0.5 * float(np.linalg.norm(pose_g.center - v.target))
+            alike = _heading_and_distance(v, pose_g.center)
             out.append(
                 (-cov, alike, v.name) if conf["paper"]["relevance"] == "covisible" else (alike, -cov, v.name)
             )
