@@ -12,7 +12,7 @@ from services.splat.model import create_splats, sh_degree_of, splats_from_tensor
 from services.splat.ply import load_ply, save_ply
 from services.splat.projection import viewmat_from_pose
 from services.splat.render import look_at, render
-from services.splat.train import SceneData, Trainer, View, _merge, confs
+from services.splat.train import SceneData, Trainer, View, _merge, confs, scaled_view
 
 W, H = 32, 24
 CAM = Camera("PINHOLE", W, H, [30.0, 30.0, 16.0, 12.0])
@@ -168,6 +168,41 @@ def test_time_budget_cuts_the_run_and_decays_the_learning_rate_over_it(tiny, tmp
     assert again.step == tr.step
     # without a budget the run is conf["steps"] long
     assert Trainer(_tiny_conf(), data, tmp_path / "none", backend="cpu").total_steps == 50
+
+
+def test_scaled_view_scales_camera_image_and_depth_pixels(tiny):
+    """At half size a point projects to half its pixel coordinates (COLMAP's pixel-corner convention),
+    the image is the 2x2 average, and the sparse-depth pixels follow; the depths stay."""
+    v = tiny[1][0]
+    v = View(v.name, v.K, v.viewmat, v.width, v.height, v.image, torch.tensor([[10.0, 6.0]]), torch.tensor([2.0]))
+    h = scaled_view(v, 0.5)
+    assert (h.width, h.height) == (W // 2, H // 2)
+    X = torch.tensor([0.3, -0.2, 0.1, 1.0])
+    full = v.K @ (v.viewmat @ X)[:3]
+    half = h.K @ (h.viewmat @ X)[:3]
+    assert torch.allclose(half[:2] / half[2], full[:2] / full[2] / 2, atol=1e-5)
+    assert torch.allclose(h.image, v.image.reshape(H // 2, 2, W // 2, 2, 3).mean((1, 3)), atol=1e-6)
+    assert torch.equal(h.depth_pixels, torch.tensor([[5.0, 3.0]])) and torch.equal(h.depth_targets, v.depth_targets)
+
+
+def test_coarse_phase_trains_at_the_smaller_size_first(tiny, tmp_path, caplog):
+    """coarse_until 0.4 of 20 steps: steps 0-7 render at coarse_scale, the rest at full size, and the
+    loss still falls; coarse_until 0 renders every step at full size."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="midview.splat")
+    _, views, pts, cols = tiny
+    data = SceneData.from_views(views, pts, cols * 0.8, test_every=0)
+    tr = Trainer(_tiny_conf(steps=20, coarse_until=0.4, coarse_scale=0.5), data, tmp_path / "c", backend="cpu")
+    sizes = []
+    render_view = tr.render_view
+    tr.render_view = lambda v, *a, **k: (sizes.append((v.width, v.height)), render_view(v, *a, **k))[1]
+    tr.train(progress=False)
+    assert sizes == [(W // 2, H // 2)] * 8 + [(W, H)] * 12
+    assert any("coarse phase done" in r.getMessage() for r in caplog.records)
+    assert np.mean([r["loss"] for r in tr.history[-3:]]) < np.mean([r["loss"] for r in tr.history[8:11]])
+    off = Trainer(_tiny_conf(steps=4), data, tmp_path / "f", backend="cpu")
+    assert not any(off.is_coarse(s) for s in range(4))
 
 
 @pytest.mark.parametrize("degree", [0, 3])

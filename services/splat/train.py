@@ -76,6 +76,11 @@ _DEFAULT: dict[str, Any] = {
     # learning rate decays over that length. Time-based, so not reproducible step for step
     "time_budget_s": None,
     "budget_every": 50,
+    # coarse to fine: the first `coarse_until` of the run's steps (a fraction of its length) render the
+    # images at `coarse_scale` of their size (0: off). Cheaper steps place and densify the Gaussians, the
+    # rest fit the detail at full size
+    "coarse_until": 0.0,
+    "coarse_scale": 0.5,
 }
 
 
@@ -240,6 +245,19 @@ class SceneData:
         return cls(views, np.asarray(points, float), np.asarray(colors, float), train, test)
 
 
+def scaled_view(v: View, scale: float) -> View:
+    """`v` with its camera, image and sparse-depth pixels at `scale` of its size (area-averaged image)."""
+    w, h = max(1, int(round(v.width * scale))), max(1, int(round(v.height * scale)))
+    sx, sy = w / v.width, h / v.height
+    K = torch.diag(torch.tensor([sx, sy, 1.0], dtype=v.K.dtype)) @ v.K
+    image = None
+    if v.image is not None:
+        img = torch.nn.functional.interpolate(v.image.permute(2, 0, 1)[None], size=(h, w), mode="area")
+        image = img[0].permute(1, 2, 0).contiguous()
+    pix = None if v.depth_pixels is None else v.depth_pixels * torch.tensor([sx, sy])
+    return View(v.name, K, v.viewmat, w, h, image, pix, v.depth_targets)
+
+
 def load_image(path: Path, width: int, height: int) -> torch.Tensor:
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
@@ -343,6 +361,7 @@ class Trainer:
         self.step = 0  # steps done
         self.total_steps = int(self.conf["steps"])  # the run's length: conf["steps"], or less (time budget)
         self._budget_told = self.total_steps  # the length last logged at INFO
+        self._fine = False  # past the coarse phase (conf["coarse_until"])
         self.elapsed_s = 0.0  # training time so far, over resumes (checkpoints keep it)
         self.history: list[dict] = []
 
@@ -379,6 +398,14 @@ class Trainer:
 
     def sh_degree_at(self, step: int) -> int:
         return min(step // self.conf["sh_degree_interval"], self.conf["sh_degree"])
+
+    def is_coarse(self, step: int) -> bool:
+        """Whether `step` renders at conf["coarse_scale"]: the first conf["coarse_until"] of the run (its
+        length as the time budget sets it; once a step is fine the rest are)."""
+        c = self.conf
+        if self._fine or not (0 < c["coarse_scale"] < 1) or step >= c["coarse_until"] * self.total_steps:
+            self._fine = True
+        return not self._fine
 
     def view_at(self, step: int) -> int:
         """Training view of a step: a seeded permutation per epoch (stateless, so resumes see the same)."""
@@ -480,9 +507,19 @@ class Trainer:
             bar = tqdm(total=self.total_steps, initial=self.step, desc="splat", dynamic_ncols=True)
         t0 = time.perf_counter()
         elapsed0, pace = self.elapsed_s, None  # the pace is measured from the first check on (after JIT)
+        coarse: dict[str, View] = {}
         while self.step < self.total_steps:
             step = self.step
             v = self.data.views[self.view_at(step)]
+            if self.is_coarse(step):
+                if v.name not in coarse:
+                    coarse[v.name] = scaled_view(v, float(c["coarse_scale"]))
+                v = coarse[v.name]
+            elif coarse:  # the fine phase from here on: its pace is not the coarse one
+                coarse, imgs, stats = {}, {}, {}
+                log.info("step %d: coarse phase done, training at full size", step)
+                if pace:
+                    pace = (time.perf_counter(), step)
             if v.name not in imgs:
                 imgs[v.name] = v.image.to(self.device)
                 if self.device.type == "cpu":  # the target's half of SSIM, once per image (GPUs recompute)
