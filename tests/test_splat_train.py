@@ -174,7 +174,9 @@ def test_scaled_view_scales_camera_image_and_depth_pixels(tiny):
     """At half size a point projects to half its pixel coordinates (COLMAP's pixel-corner convention),
     the image is the 2x2 average, and the sparse-depth pixels follow; the depths stay."""
     v = tiny[1][0]
-    v = View(v.name, v.K, v.viewmat, v.width, v.height, v.image, torch.tensor([[10.0, 6.0]]), torch.tensor([2.0]))
+    v = View(
+        v.name, v.K, v.viewmat, v.width, v.height, v.image, torch.tensor([[10.0, 6.0]]), torch.tensor([2.0])
+    )
     h = scaled_view(v, 0.5)
     assert (h.width, h.height) == (W // 2, H // 2)
     X = torch.tensor([0.3, -0.2, 0.1, 1.0])
@@ -182,7 +184,8 @@ def test_scaled_view_scales_camera_image_and_depth_pixels(tiny):
     half = h.K @ (h.viewmat @ X)[:3]
     assert torch.allclose(half[:2] / half[2], full[:2] / full[2] / 2, atol=1e-5)
     assert torch.allclose(h.image, v.image.reshape(H // 2, 2, W // 2, 2, 3).mean((1, 3)), atol=1e-6)
-    assert torch.equal(h.depth_pixels, torch.tensor([[5.0, 3.0]])) and torch.equal(h.depth_targets, v.depth_targets)
+    assert torch.equal(h.depth_pixels, torch.tensor([[5.0, 3.0]]))
+    assert torch.equal(h.depth_targets, v.depth_targets)
 
 
 def test_coarse_phase_trains_at_the_smaller_size_first(tiny, tmp_path, caplog):
@@ -193,7 +196,9 @@ def test_coarse_phase_trains_at_the_smaller_size_first(tiny, tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="midview.splat")
     _, views, pts, cols = tiny
     data = SceneData.from_views(views, pts, cols * 0.8, test_every=0)
-    tr = Trainer(_tiny_conf(steps=20, coarse_until=0.4, coarse_scale=0.5), data, tmp_path / "c", backend="cpu")
+    tr = Trainer(
+        _tiny_conf(steps=20, coarse_until=0.4, coarse_scale=0.5), data, tmp_path / "c", backend="cpu"
+    )
     sizes = []
     render_view = tr.render_view
     tr.render_view = lambda v, *a, **k: (sizes.append((v.width, v.height)), render_view(v, *a, **k))[1]
