@@ -26,7 +26,7 @@ def train_conf(
     `--set key=value` strings. Explicit step numbers are taken as given, not scaled. Raises ValueError
     for an unknown key or a value of the wrong kind."""
     from services.splat import parse_overrides, rescale_schedule
-    from services.splat.train import _merge
+    from services.splat.train import _merge, check_conf
 
     c = rescale_schedule(preset, steps if steps is not None else preset["steps"])
     given = [f"{k}={json.dumps(v)}" for k, v in (options or {}).items() if v is not None]
@@ -34,7 +34,7 @@ def train_conf(
         c = _merge(c, parse_overrides(items, c))
     if c["steps"] < 1:
         raise ValueError("steps must be >= 1")
-    return c
+    return check_conf(c)
 
 
 @app.command("train")

@@ -72,11 +72,13 @@ def parse_settings_overrides(
     that override them (services.splat.train.parse_overrides: ValueError with the reason)."""
     from services.matching.views import confs as match_confs
     from services.splat import confs as splat_confs
-    from services.splat.train import parse_overrides
+    from services.splat.train import check_conf, parse_overrides
     from services.viewpoints import confs as view_confs
 
+    splat_over = parse_overrides(splat, splat_confs["fast"])
+    check_conf(_merge(splat_confs["fast"], splat_over))
     return {
-        "splat": parse_overrides(splat, splat_confs["fast"]),
+        "splat": splat_over,
         "viewpoints": parse_overrides(viewpoints, view_confs["both"]),
         "matching": parse_overrides(matching, match_confs.get(matcher, match_confs["aliked-lightglue"])),
     }

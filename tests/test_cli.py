@@ -128,6 +128,7 @@ def test_run_takes_splat_view_and_match_overrides_and_rejects_bad_ones(tiny_scen
     for item, msg in (
         (["--splat-set", "strategy.max_gausians=5"], "unknown key 'max_gausians'"),
         (["--splat-set", "strategy.max_gaussians=many"], "expected an integer"),
+        (["--splat-set", "coarse_scale=2"], "coarse_scale must be in (0, 1]"),
         (["--view-set", "paper.height=0.4"], "unknown key 'height'"),
         (["--match-set", "render_keypoints=2048"], "unknown key 'render_keypoints'"),
         (["--match-set", "matcher.filter_threshold=low"], "expected a number"),

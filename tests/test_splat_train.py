@@ -368,6 +368,8 @@ def test_train_conf_options_and_sets():
         ("background=[1,1]", "list of 3"),
         ("refine_every", "expected key=value"),
         ("time_budget_s=soon", "expected a number or null"),
+        ("coarse_until=1.5", "coarse_until is a fraction of the run, 0 to 1"),
+        ("coarse_scale=0", "coarse_scale must be in"),
     ],
 )
 def test_train_conf_rejects(item, msg):

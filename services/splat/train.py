@@ -154,6 +154,17 @@ def rescale_schedule(conf: dict, steps: int) -> dict:
     return out
 
 
+def check_conf(conf: dict) -> dict:
+    """`conf` if its entries are in range, else ValueError with the reason (the kinds are checked by
+    `parse_overrides`)."""
+    c = _merge(_DEFAULT, conf)
+    if not 0.0 <= c["coarse_until"] <= 1.0:
+        raise ValueError(f"coarse_until is a fraction of the run, 0 to 1 (0: off), got {c['coarse_until']}")
+    if not 0.0 < c["coarse_scale"] <= 1.0:
+        raise ValueError(f"coarse_scale must be in (0, 1], got {c['coarse_scale']}")
+    return conf
+
+
 def _parse_value(text: str) -> Any:
     """JSON (numbers, true/false/null, lists, quoted strings), else a Python float or bool word, else the
     text itself."""
@@ -348,7 +359,7 @@ class Trainer:
     """Optimises Gaussians on `data` with the 3DGS recipe (see `confs`), saving into `out`."""
 
     def __init__(self, conf: dict, data: SceneData, out: str | Path, backend: str = "auto"):
-        self.conf = _merge(_DEFAULT, conf)
+        self.conf = check_conf(_merge(_DEFAULT, conf))
         self.data = data
         self.out = Path(out)
         self.backend = resolve_backend(backend)
@@ -403,7 +414,7 @@ class Trainer:
         """Whether `step` renders at conf["coarse_scale"]: the first conf["coarse_until"] of the run (its
         length as the time budget sets it; once a step is fine the rest are)."""
         c = self.conf
-        if self._fine or not (0 < c["coarse_scale"] < 1) or step >= c["coarse_until"] * self.total_steps:
+        if self._fine or c["coarse_scale"] == 1 or step >= c["coarse_until"] * self.total_steps:
             self._fine = True
         return not self._fine
 
