@@ -448,6 +448,10 @@ def train_splat(
     while done < trainer.total_steps:  # conf["steps"], or fewer within conf["time_budget_s"]
         trainer.train(resume=True, stop_after=min(done + chunk, trainer.total_steps), progress=False)
         done, steps = trainer.step, trainer.total_steps
+        if not (out / "ckpts" / f"step_{done:06d}.pt").is_file():
+            # the chunk ended off the checkpoint grid (the time budget moved the run's end during it):
+            # the next chunk resumes from here, not from the last checkpoint before it
+            trainer.save_checkpoint()
         report(done / steps, f"step {done}/{steps}, {len(trainer.splats['means'])} Gaussians")
     train_s = time.perf_counter() - t0
     trainer.export()

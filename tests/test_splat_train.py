@@ -506,6 +506,40 @@ def test_pipeline_training_restarts_when_the_model_changes(tiny, tmp_path):
     assert steps_seen[0].startswith("step 10/20")
 
 
+def test_pipeline_chunks_never_train_a_step_twice_when_the_budget_moves_the_end(tiny, tmp_path, monkeypatch):
+    """The time budget cuts the run to 13 steps during the first chunk (so the second ends at 13, off the
+    checkpoint grid of 10) and lengthens it to 18 during the second: the third chunk goes on from step 13,
+    not from the checkpoint at 10 again (which trained steps 11-13 twice and left that time uncounted)."""
+    from services import pipeline
+
+    model, _, pts, cols = tiny
+    _write_scene(tmp_path, model, _poses(), pts, cols)
+    conf = _merge(
+        confs["fast"],
+        {**_tiny_conf(steps=20), "ckpt_every": 10, "max_width": W, "time_budget_s": 1e6, "budget_every": 1},
+    )
+
+    def fake_budget(self, pace):  # the budget's verdicts, by step instead of by the clock
+        self.total_steps = {4: 13, 12: 18}.get(self.step, self.total_steps)
+        return pace
+
+    trained: list[int] = []
+    render_view = Trainer.render_view
+
+    def counting_render_view(self, *a, **k):
+        trained.append(self.step)
+        return render_view(self, *a, **k)
+
+    monkeypatch.setattr(Trainer, "_fit_time_budget", fake_budget)
+    monkeypatch.setattr(Trainer, "render_view", counting_render_view)
+    pipeline.train_splat(
+        conf, tmp_path / "sparse", tmp_path / "images", tmp_path / "out", "cpu", lambda f, m: None
+    )
+    assert trained == list(range(18))
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["steps"] == 18 and metrics["steps_planned"] == 20
+
+
 def test_sample_depth_reads_pixel_centres_and_interpolates():
     from services.splat.loss import sample_depth
 
