@@ -79,6 +79,61 @@ def test_georef_collinear_centres_take_the_rotation_from_attitudes():
         estimate(names[:2], src[:2], tgt[:2], 0.5)
 
 
+def _level_flight(seed: int, n: int = 40, att_noise_deg: float = 1.0):
+    """A survey flown at one altitude (nadir, small pitch and roll), its reconstruction (an arbitrary
+    similarity away) and a POS with 0.5 m horizontal, 0.8 m vertical and att_noise_deg attitude noise."""
+    rng = np.random.default_rng(seed)
+    C = np.c_[rng.uniform(-40, 40, (n, 2)), 60 + rng.normal(0, 0.4, n)]
+    tilts = rng.normal(0, np.radians(3), (n, 3)) * [1, 1, 0]  # camera-frame pitch and roll, 3 degrees
+    R_true = [ypr_to_matrix(rng.uniform(0, 360), -90, 0) @ _rot(w) for w in tilts]
+    R, s, t = _rot([0.4, -1.1, 2.0]), 0.3, np.array([4.0, -2.0, 1.0])
+    src = ((C - t) @ R) / s
+    R_rec = [R.T @ Rt for Rt in R_true]
+    tgt = C + rng.normal(0, 1, (n, 3)) * [0.5, 0.5, 0.8]
+    R_pos = [Rt @ _rot(rng.normal(0, np.radians(att_noise_deg), 3)) for Rt in R_true]
+    return [f"aerial/{i}.jpg" for i in range(n)], src, tgt, R_rec, R_pos, (s, R, t)
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def test_georef_joint_fit_fixes_the_tilt_of_a_flight_at_one_altitude():
+    names, src, tgt, R_rec, R_pos, (s, R, t) = _level_flight(3, 60)
+    n = len(names)
+    std = np.tile([0.5, 0.5, 0.8], (n, 1))
+    before = estimate(names, src, tgt, 0.5, R_rec, R_pos, conf={"joint": False})
+    after = estimate(names, src, tgt, 0.5, R_rec, R_pos, pos_std=std, att_std_deg=np.full(n, 1.0))
+    err_before, err_after = _angle_deg(before.R.T @ R), _angle_deg(after.R.T @ R)
+    # the centres alone fix the tilt to about 0.8 m over the flight's extent; 60 attitudes of 1 degree
+    # to about 1 / sqrt(60) = 0.13 degrees per axis
+    assert err_before > 0.4 and err_after < 0.3
+    assert "joint refinement (centres, 60 attitudes)" in after.method
+    u = after.uncertainty
+    assert 0.05 < u["tilt_deg"] < 0.3 and err_after < 3 * np.sqrt(u["tilt_deg"] ** 2 + u["heading_deg"] ** 2)
+    assert after.scale == pytest.approx(s, rel=0.005)
+    assert after.noise["position_source"] == "stated" and sum(after.inliers.values()) >= n - 2
+
+
+def test_georef_joint_fit_estimates_unstated_noise_and_uses_an_orientation_prior():
+    """No attitudes and no stated std (EXIF GPS): the noise comes from the residuals and the tilt from
+    the cameras' own axes (a nadir flight: the x and y axes horizontal)."""
+    names, src, tgt, R_rec, _, (s, R, t) = _level_flight(3, 60)
+    n = len(names)
+    tgt = tgt.copy()
+    tgt[:, 2] += np.linspace(-15, 15, n) * np.sign(
+        src @ R.T[:, 0] - (src @ R.T[:, 0]).mean()
+    )  # bad GPS heights
+    geo = estimate(names, src, tgt, 3.0, R_rec, None, pos_std=np.full((n, 3), np.nan))
+    assert geo.noise["orientation_prior"] == "vertical" and geo.noise["position_source"] == "estimated"
+    assert geo.noise["vertical_m"] > 3 * geo.noise["horizontal_m"]  # the heights' noise is seen
+    up = geo.R @ R.T @ np.array([0.0, 0.0, 1.0])  # the true up in the georeferenced frame
+    assert np.degrees(np.arccos(up[2])) < 1.5
+    centres_only = estimate(names, src, tgt, 3.0, conf={"joint": False})
+    up0 = centres_only.R @ R.T @ np.array([0.0, 0.0, 1.0])
+    assert np.degrees(np.arccos(up0[2])) > 5  # the heights tilt a fit on the centres alone
+
+
 # -- footprints and GeoJSON --------------------------------------------------------------------
 def _nadir_reconstruction() -> pycolmap.Reconstruction:
     rec = pycolmap.Reconstruction()

@@ -1,14 +1,19 @@
-"""Georeferencing: a robust similarity from reconstructed camera centres to POS positions (local ENU).
+"""Georeferencing: a similarity from the reconstruction to local ENU, from the POS positions and attitudes.
 
-The similarity is estimated with pycolmap's LO-RANSAC (`estimate_sim3d_robust`), with an inlier
-threshold scaled to the POS standard deviation. Its conditioning is checked first: camera centres on
-one line (a single flight line, or a few stations along one line) leave the rotation about that line
-free, or fixed only by deviations from the line comparable to the POS noise: the rotation uncertainty
-is about sigma / s2 radians (s2: second singular value of the centred positions). When it is too
-large and the POS has attitudes, the rotation is taken from them (robust chordal mean of
-R_pos @ R_rec^T) and only the scale and translation from the centres; without attitudes the result is
-flagged ill-conditioned. Camera centres in one plane (a survey flown at one height) are fine: two
-independent directions fix a rotation.
+Two steps. First a robust initial similarity from the camera centres (pycolmap's LO-RANSAC,
+`estimate_sim3d_robust`, inlier threshold scaled to the POS std), or, when the centres are nearly
+collinear and the POS has attitudes, the rotation from those (robust chordal mean of
+R_pos @ R_rec^T) with scale and translation from the centres.
+
+Then a joint weighted least-squares refinement (`refine_joint`) over every image, each term weighted
+by its stated std or, where the POS states none, by the noise estimated from the residuals (per axis:
+horizontal, vertical, attitude): the centres; the POS attitudes where given; and, where no attitude is
+given, an orientation prior as OpenSfM's `align_orientation_prior` (camera x axes horizontal, "no roll",
+and for nadir flights the y axes too, "vertical"), its weight from the spread of the cameras' own axes.
+Centres flown at one height fix the tilt only to the vertical noise over the flight's extent; the
+attitudes fix it to their noise over the square root of their number. The refinement's covariance
+gives the rotation (tilt and heading), scale and position uncertainty reported in georef.json and the
+SfM report.
 """
 
 from __future__ import annotations
@@ -20,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from services.pos import LocalFrame, PosRecord
 
@@ -38,6 +45,18 @@ default_conf = {
     # above the inlier threshold, or the median attitude residual above attitude_inlier_deg;
     # "failed" when fewer than min_images cameras are inliers
     "min_inlier_ratio": 0.5,
+    # the joint refinement (centres, attitudes, orientation prior); False: the initial similarity only
+    "joint": True,
+    # "auto": none where most images have a POS attitude, else "vertical" for nadir flights (optical
+    # axes within nadir_spread_deg of their mean, median) and "no_roll" otherwise; or name one, or "none"
+    "orientation_prior": "auto",
+    "nadir_spread_deg": 15.0,
+    "min_prior_std_deg": 0.5,  # floor of the prior's per-image std (estimated from the axes' spread)
+    "min_noise_images": 6,  # fewer images: the POS noise is not estimated from the residuals
+    "min_pos_std_m": 0.02,  # floors of estimated noise
+    "min_att_std_deg": 0.1,
+    "noise_iterations": 3,  # refit, re-estimate the unstated noise, refit ...
+    "robust_sigmas": 2.5,  # Huber loss beyond this many stds
 }
 
 
@@ -57,6 +76,9 @@ class Georef:
     inliers: dict[str, bool] = field(default_factory=dict)
     residuals: dict[str, np.ndarray] = field(default_factory=dict)  # name -> ENU residual vector (m)
     attitude_deg: dict[str, float] = field(default_factory=dict)
+    noise: dict = field(default_factory=dict)  # POS noise used for the weights, and where it came from
+    uncertainty: dict = field(default_factory=dict)  # 1-sigma rotation, scale and position of the fit
+    levels: dict = field(default_factory=dict)  # the georeferenced flight's plane and axes (tilt_figures)
 
     @property
     def sim3d(self) -> pycolmap.Sim3d:
@@ -113,6 +135,158 @@ def _similarity_from_attitudes(src: np.ndarray, tgt: np.ndarray, R: np.ndarray) 
     return s, tgt.mean(0) - s * R @ src.mean(0)
 
 
+def _robust_std(x: np.ndarray) -> float:
+    """1.4826 x the median absolute deviation from the median (a Gaussian's std, robust to outliers)."""
+    x = np.asarray(x, float).ravel()
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if len(x) else 0.0
+
+
+def tilt_figures(centres: np.ndarray, R_world_from_cam: list[np.ndarray] | None = None) -> dict:
+    """How level a georeferenced flight stands: the angle (deg) between the vertical and the normal of
+    the plane fitted to the camera centres (meaningful for a flight at one height: its centres nearly
+    coplanar), the centres' std off that plane (m), and the median angle of the optical axes from
+    straight down (a nadir flight's)."""
+    C = np.asarray(centres, float)
+    out: dict = {"flight_plane_tilt_deg": None, "off_plane_std_m": None, "optical_axis_from_nadir_deg": None}
+    if len(C) >= 3:
+        _, sv, Vt = np.linalg.svd(C - C.mean(0))
+        normal = Vt[2]
+        out["flight_plane_tilt_deg"] = float(np.degrees(np.arccos(min(abs(normal[2]), 1.0))))
+        out["off_plane_std_m"] = float(sv[2] / np.sqrt(len(C)))
+    if R_world_from_cam:
+        down = np.array([R[2, 2] for R in R_world_from_cam])  # optical axis . up
+        out["optical_axis_from_nadir_deg"] = float(np.median(np.degrees(np.arccos(np.clip(-down, -1, 1)))))
+    return out
+
+
+def choose_prior(R_rec: list[np.ndarray] | None, n_attitudes: int, conf: dict) -> str:
+    """The orientation prior of the joint fit: "none", "no_roll" (x axes horizontal) or "vertical"."""
+    kind = conf["orientation_prior"]
+    if kind != "auto":
+        return kind
+    if not R_rec or n_attitudes >= 0.5 * len(R_rec):
+        return "none"
+    axes = np.array([R[:, 2] for R in R_rec])  # optical axes in the reconstruction
+    mean = axes.sum(0) / max(np.linalg.norm(axes.sum(0)), 1e-12)
+    spread = np.degrees(np.arccos(np.clip(axes @ mean, -1.0, 1.0)))
+    return "vertical" if float(np.median(spread)) < conf["nadir_spread_deg"] else "no_roll"
+
+
+def _prior_axes(kind: str) -> list[int]:
+    """Camera axes (columns of R_world_from_cam) that the prior holds horizontal."""
+    return {"none": [], "no_roll": [0], "vertical": [0, 1]}[kind]
+
+
+def refine_joint(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    init: tuple[float, np.ndarray, np.ndarray],
+    pos_std: np.ndarray,
+    R_rec: list[np.ndarray] | None = None,
+    R_pos: list[np.ndarray | None] | None = None,
+    att_std_deg: np.ndarray | None = None,
+    conf: dict | None = None,
+    default_std: float = 1.0,
+) -> tuple[float, np.ndarray, np.ndarray, dict, dict]:
+    """Weighted least squares of a similarity over centres, attitudes and an orientation prior.
+
+    src, tgt: (N, 3) reconstruction and POS centres; init: (scale, R, t) with tgt ~ scale R src + t;
+    pos_std: (N, 3) per-axis position std in metres, NaN where the POS states none (estimated from the
+    residuals, pooled over the images: east and north together, up alone; `default_std` where too few
+    images); att_std_deg: (N,) likewise for the attitudes. Returns scale, R, t, the noise used and the
+    fit's 1-sigma uncertainty.
+    """
+    conf = {**default_conf, **(conf or {})}
+    src, tgt = np.asarray(src, float), np.asarray(tgt, float)
+    n = len(src)
+    pairs = [] if R_rec is None or R_pos is None else [i for i, Rp in enumerate(R_pos) if Rp is not None]
+    prior = choose_prior(R_rec, len(pairs), conf)
+    axes = _prior_axes(prior) if R_rec is not None else []
+    s0, R0, t0 = init
+    c_mean = src.mean(0)
+    x0 = np.r_[np.zeros(3), 0.0, s0 * R0 @ c_mean + t0]  # world rotation, log scale, centroid in ENU
+    A = src - c_mean
+    # attitudes far off the initial rotation (a wrong gimbal reading) are left out
+    pairs = [
+        i for i in pairs if _rotation_angle_deg(R_pos[i].T @ R0 @ R_rec[i]) <= conf["attitude_inlier_deg"]
+    ]
+    pos_stated = np.isfinite(pos_std)
+    att_stated = np.isfinite(np.asarray(att_std_deg, float)) if att_std_deg is not None else np.zeros(n, bool)
+    sig_pos = np.where(pos_stated, pos_std, default_std)
+    sig_att = np.where(att_stated, att_std_deg if att_std_deg is not None else 1.0, 1.0)
+    sig_prior = np.full(len(axes), 5.0)  # degrees, per prior axis
+    est_pos = n >= conf["min_noise_images"] and not pos_stated.all()
+    est_att = len(pairs) >= conf["min_noise_images"] and not att_stated[pairs].all()
+
+    def parts(x):
+        R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
+        s = s0 * np.exp(x[3])
+        r_pos = s * A @ R.T + x[4:7] - tgt
+        r_att = np.array(
+            [Rotation.from_matrix(R_pos[i].T @ R @ R_rec[i]).as_rotvec() for i in pairs]
+        ).reshape(-1, 3)
+        r_pri = np.array([[(R @ R_rec[i][:, k])[2] for k in axes] for i in range(n)]).reshape(n, len(axes))
+        return r_pos, r_att, r_pri
+
+    def residuals(x):
+        r_pos, r_att, r_pri = parts(x)
+        return np.concatenate(
+            [
+                (r_pos / sig_pos).ravel(),
+                (r_att / np.radians(sig_att[pairs])[:, None]).ravel(),
+                (r_pri / np.sin(np.radians(sig_prior))).ravel(),
+            ]
+        )
+
+    x = x0
+    for _ in range(max(1, conf["noise_iterations"])):
+        x = least_squares(residuals, x, loss="huber", f_scale=conf["robust_sigmas"], x_scale=1.0).x
+        r_pos, r_att, r_pri = parts(x)
+        if est_pos:
+            h = max(_robust_std(r_pos[:, :2]), conf["min_pos_std_m"])
+            v = max(_robust_std(r_pos[:, 2]), conf["min_pos_std_m"])
+            sig_pos = np.where(pos_stated, pos_std, np.array([h, h, v]))
+        if est_att:
+            a = max(float(np.degrees(_robust_std(r_att))), conf["min_att_std_deg"])
+            sig_att = np.where(att_stated, sig_att, a)
+        if axes:
+            spread = [min(_robust_std(r_pri[:, j]), 1.0) for j in range(len(axes))]
+            sig_prior = np.maximum(np.degrees(np.arcsin(spread)), conf["min_prior_std_deg"])
+    sol = least_squares(residuals, x, loss="huber", f_scale=conf["robust_sigmas"], x_scale=1.0)
+    x = sol.x
+    R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
+    s = float(s0 * np.exp(x[3]))
+    t = x[4:7] - s * R @ c_mean
+    J = sol.jac
+    dof = max(len(sol.fun) - len(x), 1)
+    chi2 = float(np.sum(sol.fun**2) / dof)
+    try:
+        cov = np.linalg.inv(J.T @ J) * max(chi2, 1.0)
+    except np.linalg.LinAlgError:
+        cov = np.full((7, 7), np.inf)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    rot_deg = np.degrees(sd[:3])
+    uncertainty = {
+        "rotation_deg": {"east": float(rot_deg[0]), "north": float(rot_deg[1]), "up": float(rot_deg[2])},
+        "tilt_deg": float(np.hypot(rot_deg[0], rot_deg[1])),
+        "heading_deg": float(rot_deg[2]),
+        "scale_rel": float(sd[3]),
+        "centroid_m": {"east": float(sd[4]), "north": float(sd[5]), "up": float(sd[6])},
+        "reduced_chi2": chi2,
+    }
+    h_src = "stated" if pos_stated.all() else ("estimated" if est_pos else "default")
+    noise = {
+        "horizontal_m": float(np.median(sig_pos[:, 0])),
+        "vertical_m": float(np.median(sig_pos[:, 2])),
+        "position_source": h_src,
+        "attitude_deg": float(np.median(sig_att[pairs])) if pairs else None,
+        "attitudes_used": len(pairs),
+        "orientation_prior": prior if axes else "none",
+        "prior_deg": [float(v) for v in sig_prior] if axes else None,
+    }
+    return s, R, t, noise, uncertainty
+
+
 def estimate(
     names: list[str],
     src: np.ndarray,
@@ -121,11 +295,15 @@ def estimate(
     R_rec: list[np.ndarray] | None = None,
     R_pos: list[np.ndarray | None] | None = None,
     conf: dict | None = None,
+    pos_std: np.ndarray | None = None,
+    att_std_deg: np.ndarray | None = None,
 ) -> Georef:
     """Similarity tgt_from_src from camera centres `src` (reconstruction) to `tgt` (POS, ENU metres).
 
     `R_rec` are the reconstruction's R_world_from_cam and `R_pos` the POS attitudes (or None), used for
-    the attitude residuals and for the rotation when the centres are collinear.
+    the rotation (joint refinement; the initial one where the centres are collinear), the orientation
+    prior and the attitude residuals. `pos_std` (N, 3) and `att_std_deg` (N,): the stated stds, NaN
+    where the POS states none (then estimated from the residuals); by default `sigma` for every axis.
     """
     conf = {**default_conf, **(conf or {})}
     src, tgt = np.asarray(src, float), np.asarray(tgt, float)
@@ -150,28 +328,49 @@ def estimate(
     if sim is not None:
         s, R, t = float(sim.scale), np.asarray(sim.rotation.matrix()), np.asarray(sim.translation).ravel()
         method = "LO-RANSAC on centres" if res is not None else "least squares on centres"
-        if cond["ill_conditioned"]:
-            method += " (ill-conditioned: centres close to a line, no POS attitude)"
-            logger.warning(
-                "camera centres are nearly collinear and the POS has no attitude: the rotation about "
-                "the flight line is uncertain by about %.1f degrees",
-                cond["rotation_uncertainty_deg"],
-            )
     elif pairs:
         R, n_att = robust_mean_rotation([Rp @ Rr.T for Rr, Rp in pairs], conf["attitude_inlier_deg"])
         s, t = _similarity_from_attitudes(src, tgt, R)
         method = f"rotation from {n_att}/{len(pairs)} POS attitudes (centres too close to a line)"
     else:
         raise GeorefError("the similarity estimation failed (degenerate camera centres, no POS attitude)")
-    geo = Georef(s, R, t, method, cond)
+    noise, unc = {}, {}
+    if conf["joint"]:
+        std = np.full((len(src), 3), float(sigma)) if pos_std is None else np.asarray(pos_std, float)
+        s, R, t, noise, unc = refine_joint(
+            src, tgt, (s, R, t), std, R_rec, R_pos, att_std_deg, conf, default_std=float(sigma)
+        )
+        terms = ["centres"]
+        if noise["attitudes_used"]:
+            terms.append(f"{noise['attitudes_used']} attitudes")
+        if noise["orientation_prior"] != "none":
+            terms.append(f"{noise['orientation_prior']} prior")
+        method += ", joint refinement (" + ", ".join(terms) + ")"
+        if noise["position_source"] != "stated":
+            max_error = max(conf["max_error_sigmas"] * noise["horizontal_m"], conf["min_max_error"])
+            cond["max_error_m"] = max_error
+    fixed = noise.get("attitudes_used") or noise.get("orientation_prior", "none") != "none"
+    if cond["ill_conditioned"] and sim is not None and not fixed:
+        method += " (ill-conditioned: centres close to a line, no POS attitude)"
+        logger.warning(
+            "camera centres are nearly collinear and the POS has no attitude: the rotation about "
+            "the flight line is uncertain by about %.1f degrees",
+            cond["rotation_uncertainty_deg"],
+        )
+    geo = Georef(s, R, t, method, cond, noise=noise, uncertainty=unc)
     res_vec = geo.apply(src) - tgt
+    v_error = max_error * noise.get("vertical_m", 1.0) / max(noise.get("horizontal_m", 1.0), 1e-9)
     for i, n in enumerate(names):
         geo.residuals[n] = res_vec[i]
-        geo.inliers[n] = bool(np.linalg.norm(res_vec[i]) <= max_error)
+        geo.inliers[n] = bool(
+            np.linalg.norm(res_vec[i]) <= max_error
+            or (np.linalg.norm(res_vec[i][:2]) <= max_error and abs(res_vec[i][2]) <= v_error)
+        )
     if pairs:
         for n, Rr, Rp in zip(names, R_rec or [], R_pos or [], strict=True):
             if Rp is not None:
                 geo.attitude_deg[n] = _rotation_angle_deg(Rp.T @ (R @ Rr))
+    geo.levels = tilt_figures(geo.apply(src), [R @ Rr for Rr in R_rec] if R_rec is not None else None)
     if cond["coplanar"]:
         logger.info(
             "camera centres are nearly coplanar (one flight height): the similarity is still determined"
@@ -186,8 +385,11 @@ def georeference(
     sigma: float,
     conf: dict | None = None,
 ) -> Georef:
-    """Estimate the similarity for a reconstruction and apply it in place (the model becomes local ENU)."""
-    names, src, tgt, R_rec, R_pos = [], [], [], [], []
+    """Estimate the similarity for a reconstruction and apply it in place (the model becomes local ENU).
+
+    The records' stated stds weight the joint refinement (`sigma` where they state none and the noise
+    cannot be estimated); their attitudes are taken from the ENU frame at each image to `frame`'s."""
+    names, src, tgt, R_rec, R_pos, pos_std, att_std = [], [], [], [], [], [], []
     for img in rec.images.values():
         if not img.has_pose or img.name not in records:
             continue
@@ -196,9 +398,21 @@ def georeference(
         src.append(img.projection_center())
         tgt.append(frame.from_wgs84(r.lat, r.lon, r.h)[0])
         R_rec.append(img.cam_from_world().rotation.matrix().T)
-        R_pos.append(r.R_world_from_cam)
+        Rp = r.R_world_from_cam
+        R_pos.append(None if Rp is None else frame.rotation_to_enu_at(r.lat, r.lon).T @ Rp)
+        nan = float("nan")
+        pos_std.append([r.std_xy or nan, r.std_xy or nan, r.std_z or r.std_xy or nan])
+        att_std.append(r.std_att or nan)
     geo = estimate(
-        names, np.array(src).reshape(-1, 3), np.array(tgt).reshape(-1, 3), sigma, R_rec, R_pos, conf
+        names,
+        np.array(src).reshape(-1, 3),
+        np.array(tgt).reshape(-1, 3),
+        sigma,
+        R_rec,
+        R_pos,
+        conf,
+        pos_std=np.array(pos_std, float).reshape(-1, 3),
+        att_std_deg=np.array(att_std, float),
     )
     rec.transform(geo.sim3d)
     return geo
@@ -254,6 +468,9 @@ def summary(geo: Georef, conf: dict | None = None) -> dict:
         "horizontal_m": _stats([float(np.linalg.norm(v[:2])) for v in geo.residuals.values()]),
         "vertical_m": _stats([float(abs(v[2])) for v in geo.residuals.values()]),
         "attitude_deg": _stats(list(geo.attitude_deg.values())),
+        "pos_noise": geo.noise or None,
+        "uncertainty": geo.uncertainty or None,
+        "levels": geo.levels or None,
         "suspect": state != "ok",
     }
 
