@@ -352,3 +352,37 @@ def test_cli_main_registers_eval(scene, tmp_path):
         pytest.skip(f"cli.main not importable yet: {e}")
     r = CliRunner().invoke(main.app, ["eval", "matches", str(tmp_path / "nope"), str(tmp_path / "m.h5")])
     assert r.exit_code == 2 and "does not exist" in _output(r)
+
+
+def test_sfm_absolute_errors_in_the_georeferenced_frame(scene, tmp_path):
+    """A model georeferenced in its own ENU frame (another origin), its aerial cameras 0.5 m off in
+    absolute terms and one ground camera 0.3 m further: the absolute errors show both; the all-camera
+    alignment hides the common offset; two aerial cameras are too few for the aerial alignment."""
+    from services.pos import LocalFrame
+
+    truth = LocalFrame(55.7047, 13.1910, 70.0)
+    frame = LocalFrame(55.7050, 13.1905, 75.0)  # the POS's frame: another origin
+    (scene / "gt" / "scene.json").write_text(json.dumps({"origin": vars(truth)}))
+    offset = np.array([0.3, -0.4, 0.0])  # the georeference's error, common to every camera
+    R_m = frame.rotation_to_enu_at(truth.lat0, truth.lon0).T  # truth ENU -> model ENU (directions)
+    images = {}
+    for n, p in POSES.items():
+        c = p.center + offset + (np.array([0.0, 0.0, 0.3]) if n == G2 else 0.0)
+        c_model = frame.from_wgs84(*truth.to_wgs84(c[None]))[0]
+        images[n] = (n.split("/")[0], Pose.from_center(R_m @ p.R.T, c_model))
+    model = write_model(tmp_path / "geo" / "sparse", CAMERAS, images)
+    (tmp_path / "geo" / "georef.json").write_text(json.dumps({"frame": vars(frame)}))
+    s = evaluate_sfm(scene, model)
+    assert s["georef"].endswith("georef.json")
+    ab = s["per_set"]["aerial"]["absolute_error"]
+    assert ab["median"] == pytest.approx(0.5, abs=1e-3) and ab["max"] == pytest.approx(0.5, abs=1e-3)
+    g = s["per_set"]["ground"]
+    assert g["absolute_error"]["max"] == pytest.approx(np.linalg.norm(offset + [0, 0, 0.3]), abs=1e-3)
+    assert g["absolute_rotation_error"]["max"] < 1e-3
+    assert s["aerial_alignment"] is None and g["aerial_aligned_error"]["max"] is None
+    assert s["per_set"]["aerial"]["position_error"]["max"] < 0.2  # the alignment takes the offset away
+    assert s["per_set"]["all"]["absolute_error"]["p90"] <= ab["max"] + 0.3
+    # without a georef.json, absolute errors are not available (not silently taken as the aligned ones)
+    bare = write_model(tmp_path / "bare" / "sparse", CAMERAS, images)
+    assert evaluate_sfm(scene, bare)["per_set"]["all"]["absolute_error"]["median"] is None
+    (scene / "gt" / "scene.json").unlink()
