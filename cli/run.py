@@ -531,11 +531,20 @@ def nri_ground(sfm_eval: dict | None) -> str:
     return f"{g.get('num_registered', 0)}/{g.get('num_gt', 0)}"
 
 
-def ground_error(sfm_eval: dict | None) -> str:
+def ground_error(sfm_eval: dict | None, key: str = "absolute_error") -> str:
+    """Median / max of the ground cameras' position error (`key` of evaluate_sfm's per-set errors)."""
     if not sfm_eval:
         return "-"
-    pe = sfm_eval["per_set"].get("ground", {}).get("position_error", {})
-    return "-" if pe.get("mean") is None else f"{pe['mean']:.2f}"
+    pe = sfm_eval["per_set"].get("ground", {}).get(key, {})
+    return "-" if pe.get("median") is None else f"{pe['median']:.2f} / {pe['max']:.2f}"
+
+
+def ground_within(sfm_eval: dict | None, metres: float = 0.5) -> int:
+    """Ground images registered within `metres` of the truth in absolute terms (the georeferenced frame)."""
+    if not sfm_eval or not sfm_eval.get("georef"):
+        return 0
+    rows = sfm_eval.get("per_image") or []
+    return sum(r["set"] == "ground" and r.get("absolute_error", float("inf")) <= metres for r in rows)
 
 
 def print_table(rows: list[dict], sfm_evals: dict[str, dict], console) -> None:
@@ -551,7 +560,9 @@ def print_table(rows: list[dict], sfm_evals: dict[str, dict], console) -> None:
         "pooled prec.",
         "NMP",
         "NRI ground",
-        "pos err (m)",
+        "within 0.5 m",
+        "abs err med / max (m)",
+        "aerial-aligned (m)",
     )
     for col in cols:
         table.add_column(col, justify="left" if col == "method" else "right")
@@ -566,12 +577,16 @@ def print_table(rows: list[dict], sfm_evals: dict[str, dict], console) -> None:
             f"{s['pooled_precision']:.3f}",
             f"{s['nmp']}/{s['num_pairs']}",
             nri_ground(ev),
+            str(ground_within(ev)) if ev else "-",
             ground_error(ev),
+            ground_error(ev, "aerial_aligned_error"),
         )
     console.print(table)
     console.print(
         "NRI ground: ground images registered by the combined reconstruction with each method's matches "
-        "(the same procedure); pos err: their mean camera position error after a similarity alignment."
+        "(the same procedure); within 0.5 m and abs err: their camera centres' distance to the truth in "
+        "the georeferenced frame (what a user gets); aerial-aligned: after aligning the model to the "
+        "truth by its aerial cameras alone."
     )
 
 
@@ -643,7 +658,9 @@ def write_report_html(
         "pooled precision",
         "NMP",
         "NRI ground",
-        "ground position error (m)",
+        "within 0.5 m",
+        "ground abs error med / max (m)",
+        "aerial-aligned (m)",
     ]
     trs = []
     for s in rows:
@@ -657,7 +674,9 @@ def write_report_html(
             f"{s['pooled_precision']:.3f}",
             f"{s['nmp']}/{s['num_pairs']}",
             nri_ground(ev),
+            str(ground_within(ev)) if ev else "-",
             ground_error(ev),
+            ground_error(ev, "aerial_aligned_error"),
         ]
         trs.append("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in vals) + "</tr>")
     pics = "\n".join(
@@ -672,7 +691,9 @@ def write_report_html(
         sfm_txt = (
             f"<p>midview's combined SfM: NRI aerial {ev['per_set']['aerial']['num_registered']}/"
             f"{ev['per_set']['aerial']['num_gt']}, ground {nri_ground(ev)}, N3P {ev['num_points3D']}; ground "
-            f"camera position error mean {ground_error(ev)} m (after a similarity alignment).</p>"
+            f"camera position error median / max {ground_error(ev)} m in the georeferenced frame "
+            f"(absolute), {ground_error(ev, 'aerial_aligned_error')} m after aligning the aerial cameras "
+            "to the truth.</p>"
         )
     doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>midview demo</title>
 <style>body{{font-family:sans-serif;max-width:1400px;margin:auto}}
