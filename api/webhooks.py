@@ -14,7 +14,12 @@ the same on every retry, for de-duplication) with the headers
 The timestamp is part of the signed message so that a captured request cannot be replayed later:
 receivers check the HMAC (verify_signature) and that the timestamp is recent. Any 2xx answer is a
 success; anything else (or no answer) is retried after base_delay_s * 2**(attempt - 1), capped at
-max_delay_s, until max_attempts, when the delivery is marked failed.
+max_delay_s, until max_attempts, when the delivery is marked failed. Redirects are not followed, and
+the receiver's answer is recorded by its status code only (never its body).
+
+The URL's host is resolved at each delivery and refused, before any connection, when it is not a
+public address (shared.netguard: loopback, private, link-local, multicast, reserved ..., unless the
+operator's `webhook_allow_networks` admits it); the request goes to the address that was checked.
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ import httpx
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
+from shared import netguard
+from shared.config import get_settings
 from shared.db.models import DeliveryStatus, Job, JobStatus, Webhook, WebhookDelivery, utcnow
 
 log = logging.getLogger("midview.webhooks")
@@ -149,9 +156,15 @@ def deliver(
     base_delay_s: float = BASE_DELAY_S,
     max_delay_s: float = MAX_DELAY_S,
     timeout_s: float = TIMEOUT_S,
+    allow: list | None = None,
+    resolver: netguard.Resolver = netguard.system_resolver,
 ) -> bool:
-    """Try one delivery now; record the outcome (delivered, retry at next_attempt_at, or failed)."""
+    """Try one delivery now; record the outcome (delivered, retry at next_attempt_at, or failed).
+
+    `allow`: networks a non-public receiver may be in (default: settings.webhook_allow_networks)."""
     now = now or utcnow()
+    if allow is None:
+        allow = netguard.parse_networks(get_settings().webhook_allow_networks)
     hook = delivery.webhook
     if not hook.active:
         delivery.status, delivery.next_attempt_at = DeliveryStatus.failed, None
@@ -171,13 +184,24 @@ def deliver(
     delivery.attempts += 1
     error: str | None = None
     try:
+        target = netguard.resolve(hook.url, allow, resolver)
+        pinned = netguard.pinned_request_args(target)
+        args = dict(
+            content=body,
+            headers={**headers, **pinned["headers"]},
+            timeout=timeout_s,
+            extensions=pinned["extensions"],
+            follow_redirects=False,
+        )
         if client is None:
             with httpx.Client(follow_redirects=False) as own:
-                r = own.post(hook.url, content=body, headers=headers, timeout=timeout_s)
+                r = own.post(pinned["url"], **args)
         else:
-            r = client.post(hook.url, content=body, headers=headers, timeout=timeout_s)
+            r = client.post(pinned["url"], **args)
         if not r.is_success:
-            error = f"HTTP {r.status_code}: {r.text[:200]}"
+            error = f"HTTP {r.status_code}" + (" (redirects are not followed)" if r.is_redirect else "")
+    except netguard.BlockedURL as e:
+        error = str(e)
     except httpx.HTTPError as e:
         error = f"{type(e).__name__}: {e}"[:1000]
     if error is None:

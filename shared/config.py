@@ -39,6 +39,11 @@ class Settings(BaseSettings):
         "embedded",
         description="How jobs reach the workers: embedded (a thread of the API process) or celery",
     )
+    webhook_allow_networks: str = Field(
+        "",
+        description="CIDR networks (comma-separated) that webhooks may reach although they are not public "
+        "(loopback, private, link-local ...); empty: public addresses only",
+    )
     broker_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker (Redis) URL")
     result_backend: str = Field("", description="Celery result backend URL; empty: the broker URL")
     work_dir: Path | None = Field(None, description="Workers' local job folders; default DATA_DIR/work")

@@ -83,7 +83,14 @@ def make_api_settings(kind, folder, request, **overrides):
     """ApiSettings of a backend kind ("sqlite-local" or "postgres-s3") with its data under folder."""
     from shared.db.session import upgrade_database
 
-    common = dict(data_dir=folder, events_poll_s=0.05, upload_tmp_dir=str(folder), upload_part_size=5 << 20)
+    # the tests' webhook receivers listen on 127.0.0.1, which the service refuses unless allowed
+    common = dict(
+        data_dir=folder,
+        events_poll_s=0.05,
+        upload_tmp_dir=str(folder),
+        upload_part_size=5 << 20,
+        webhook_allow_networks="127.0.0.1/32",
+    )
     common.update(overrides)
     if kind == "sqlite-local":
         url = f"sqlite:///{folder / 'midview.db'}"
@@ -185,6 +192,7 @@ def service_settings(request, tmp_path_factory):
         dispatcher="celery",
         num_threads=1,
         events_poll_s=0.05,
+        webhook_allow_networks="127.0.0.1/32",
     )
 
 
@@ -208,6 +216,7 @@ def worker_environment(settings, work_dir):
         "RESULT_BACKEND": settings.result_backend,
         "NUM_THREADS": settings.num_threads,
         "TASK_MAX_RETRIES": settings.task_max_retries,
+        "WEBHOOK_ALLOW_NETWORKS": settings.webhook_allow_networks,
         "LOG_LEVEL": "INFO",
     }
     env.update({f"MIDVIEW_{k}": str(v) for k, v in values.items() if v is not None})

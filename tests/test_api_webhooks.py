@@ -24,11 +24,23 @@ from shared.db import crud
 from shared.db.models import DeliveryStatus, JobStatus, WebhookDelivery, utcnow
 
 
+@pytest.fixture(autouse=True)
+def _loopback_receivers_allowed(monkeypatch):
+    """The receivers here listen on 127.0.0.1: the operator's allow-list admits it (in-process
+    deliveries read it from the settings)."""
+    from shared.config import get_settings
+
+    monkeypatch.setenv("MIDVIEW_WEBHOOK_ALLOW_NETWORKS", "127.0.0.1/32")
+    get_settings.cache_clear()
+    yield
+    get_settings.cache_clear()
+
+
 class Receiver:
     """A tiny HTTP server on 127.0.0.1 recording POSTs; answers the statuses of `script` in turn
-    (then 200)."""
+    (then 200), with `reply` as the body and, for a 3xx, a Location back to itself."""
 
-    def __init__(self, script: list[int]) -> None:
+    def __init__(self, script: list[int], reply: bytes = b"ok") -> None:
         self.script, self.requests = list(script), []
         receiver = self
 
@@ -38,9 +50,11 @@ class Receiver:
                 receiver.requests.append((dict(self.headers), body))
                 status = receiver.script.pop(0) if receiver.script else 200
                 self.send_response(status)
-                self.send_header("Content-Length", "2")
+                if 300 <= status < 400:
+                    self.send_header("Location", receiver.url + "/moved")
+                self.send_header("Content-Length", str(len(reply)))
                 self.end_headers()
-                self.wfile.write(b"ok")
+                self.wfile.write(reply)
 
             def log_message(self, *args: object) -> None:
                 pass
@@ -162,5 +176,132 @@ def test_delivery_gives_up_after_max_attempts(api_env) -> None:
             assert d.status == DeliveryStatus.failed and d.attempts == 3 and d.next_attempt_at is None
             assert json.loads(receiver.requests[0][1])["event"] == "job.failed"
         assert len(receiver.requests) == 3
+    finally:
+        receiver.close()
+
+
+# -- server-side request forgery ---------------------------------------------------------------------
+INTERNAL_URLS = (
+    "http://127.0.0.1:6379/",
+    "http://localhost:6379/",
+    "http://LOCALHOST./x",
+    "http://api.localhost/x",
+    "http://0x7f000001/",
+    "http://2130706433/",
+    "http://0177.0.0.1/",
+    "http://127.1/",
+    "http://0.0.0.0/",
+    "http://[::1]/",
+    "http://[::ffff:127.0.0.1]/",
+    "http://[::ffff:7f00:1]/",
+    "http://[64:ff9b::a9fe:a9fe]/",  # NAT64 of 169.254.169.254
+    "http://[2002:a00:1::]/",  # 6to4 of 10.0.0.1
+    "http://169.254.169.254/latest/meta-data/",
+    "http://10.0.0.1/",
+    "http://172.16.5.4/",
+    "http://192.168.1.1/",
+    "http://100.64.0.1/",
+    "http://224.0.0.1/",
+    "http://240.0.0.1/",
+    "http://[fd00::1]/",
+    "http://[fe80::1]/",
+    "http://[ff02::1]/",
+)
+
+
+def test_webhook_urls_naming_internal_addresses_are_refused(tmp_path, request) -> None:
+    """POST /webhooks refuses every encoding of a non-public address with 422 and the reason (an
+    operator's allow-list is not set here); nothing is stored and nothing is sent."""
+    from conftest import ApiEnv, make_api_settings
+    from fastapi.testclient import TestClient
+
+    from api.main import create_app
+    from shared.db.models import Webhook
+
+    settings = make_api_settings("sqlite-local", tmp_path, request, webhook_allow_networks="")
+    with TestClient(create_app(settings)) as c:
+        env = ApiEnv("sqlite-local", c.app, c, None)
+        headers = env.tenant().headers
+        for url in INTERNAL_URLS:
+            r = c.post("/webhooks", json={"url": url}, headers=headers)
+            assert r.status_code == 422, (url, r.text)
+            assert "refused" in r.text or "local name" in r.text, (url, r.text)
+        assert (
+            c.post("/webhooks", json={"url": "https://hooks.example.com/x"}, headers=headers).status_code
+            == 201
+        )
+        with env.session() as s:
+            assert [h.url for h in s.scalars(sa.select(Webhook))] == ["https://hooks.example.com/x"]
+
+
+def test_netguard_resolves_at_delivery_time_and_checks_every_address() -> None:
+    from shared import netguard
+
+    names = {
+        "hooks.example.com": ["93.184.216.34"],
+        "internal.example.com": ["10.1.2.3"],
+        "rebind.example.com": ["93.184.216.34", "127.0.0.1"],
+        "v6.example.com": ["::1"],
+        "mapped.example.com": ["::ffff:169.254.169.254"],
+    }
+    resolver = lambda host, port: names[host]  # noqa: E731  (no DNS: the test sends nothing)
+    t = netguard.resolve("https://hooks.example.com:8443/a?b=1", [], resolver)
+    assert t.address == "93.184.216.34" and t.pinned_url == "https://93.184.216.34:8443/a?b=1"
+    args = netguard.pinned_request_args(t)
+    assert args["headers"] == {"Host": "hooks.example.com:8443"}
+    assert args["extensions"] == {"sni_hostname": "hooks.example.com"}
+    for host, why in (
+        ("internal.example.com", "private"),
+        ("rebind.example.com", "loopback"),
+        ("v6.example.com", "loopback"),
+        ("mapped.example.com", "private|link-local"),
+    ):
+        with pytest.raises(netguard.BlockedURL, match=why):
+            netguard.resolve(f"http://{host}/", [], resolver)
+    allow = netguard.parse_networks("10.1.0.0/16")
+    assert netguard.resolve("http://internal.example.com/", allow, resolver).address == "10.1.2.3"
+    for bad in ("ftp://hooks.example.com/", "http://user:pw@hooks.example.com/", "http:///x"):
+        with pytest.raises(netguard.BlockedURL):
+            netguard.resolve(bad, [], resolver)
+    with pytest.raises(ValueError, match="CIDR"):
+        netguard.parse_networks("10.0.0.0/33")
+
+
+def test_delivery_to_a_name_resolving_to_loopback_is_refused_before_connecting(api_env) -> None:
+    """A webhook on a host name passes registration; at delivery its address is loopback: refused, the
+    receiver gets nothing. With the operator's allow-list the same delivery goes to the checked address
+    (Host header kept); a redirect is not followed and the receiver's body is never recorded."""
+    from api.webhooks import deliver
+    from shared import netguard
+
+    receiver = Receiver([302, 500], reply=b"internal secret: db password hunter2")
+    try:
+        port = receiver.server.server_address[1]
+        resolver = lambda host, p: ["127.0.0.1"] if host == "receiver.example.com" else []  # noqa: E731
+        c, t = api_env.client, api_env.tenant()
+        hook = c.post(
+            "/webhooks", json={"url": f"http://receiver.example.com:{port}/hook"}, headers=t.headers
+        ).json()
+        job_id = _finished_job(api_env, t, JobStatus.succeeded)
+        now = utcnow()
+        with api_env.session() as s:
+            (d,) = enqueue_job_event(s, crud.get_job(s, job_id), now=now)
+            assert not deliver(s, d, now=now, allow=[], resolver=resolver)
+            assert "refused: loopback address 127.0.0.1" in d.last_error
+            s.commit()
+        assert receiver.requests == []
+        allow = netguard.parse_networks("127.0.0.1/32")
+        with api_env.session() as s:
+            d = s.get(WebhookDelivery, d.id)
+            assert not deliver(s, d, now=now, allow=allow, resolver=resolver)  # 302: not followed
+            assert d.last_error == "HTTP 302 (redirects are not followed)"
+            assert not deliver(s, d, now=now, allow=allow, resolver=resolver)  # 500 with a body
+            assert d.last_error == "HTTP 500"
+            assert deliver(s, d, now=now, allow=allow, resolver=resolver)
+            s.commit()
+        assert len(receiver.requests) == 3  # the redirect's target was never asked
+        assert all(h["Host"] == f"receiver.example.com:{port}" for h, _ in receiver.requests)
+        rows = c.get(f"/webhooks/{hook['id']}/deliveries", headers=t.headers).text
+        assert "hunter2" not in rows
     finally:
         receiver.close()

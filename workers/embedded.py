@@ -186,10 +186,11 @@ class EmbeddedDispatcher:
 
     def deliver_webhooks(self) -> int:
         from api.webhooks import deliver_due
+        from shared.netguard import parse_networks
 
         try:
             with execute.get_context(self.settings).session() as s:
-                return deliver_due(s)
+                return deliver_due(s, allow=parse_networks(self.settings.webhook_allow_networks))
         except Exception:
             log.exception("webhook delivery failed")
             return 0

@@ -8,9 +8,10 @@ import sqlalchemy as sa
 from fastapi import APIRouter, HTTPException, Query, Response, status
 from sqlalchemy.orm import Session
 
-from api.deps import SessionDep, TenantDep
+from api.deps import SessionDep, SettingsDep, TenantDep
 from api.schemas import DeliveryOut, WebhookCreate, WebhookCreated, WebhookOut
 from api.webhooks import new_secret
+from shared import netguard
 from shared.db.models import Webhook, WebhookDelivery
 
 router = APIRouter(prefix="/webhooks", tags=["webhooks"])
@@ -24,8 +25,17 @@ def _webhook(session: Session, tenant_id: str, webhook_id: str) -> Webhook:
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=WebhookCreated)
-def create_webhook(body: WebhookCreate, tenant: TenantDep, session: SessionDep) -> WebhookCreated:
-    """Register a URL for events; the response holds the signing secret, shown only this once."""
+def create_webhook(
+    body: WebhookCreate, tenant: TenantDep, session: SessionDep, settings: SettingsDep
+) -> WebhookCreated:
+    """Register a URL for events; the response holds the signing secret, shown only this once.
+
+    422 for a URL that names a non-public address (in any encoding) or a local name; host names are
+    resolved and checked again at every delivery."""
+    try:
+        netguard.check_literal(str(body.url), netguard.parse_networks(settings.webhook_allow_networks))
+    except netguard.BlockedURL as e:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"webhook url {e}") from e
     hook = Webhook(
         tenant_id=tenant.id, url=str(body.url), secret=new_secret(), events=sorted(set(body.events))
     )
