@@ -117,18 +117,23 @@ def test_georef_joint_fit_fixes_the_tilt_of_a_flight_at_one_altitude():
 
 def test_georef_joint_fit_estimates_unstated_noise_and_uses_an_orientation_prior():
     """No attitudes and no stated std (EXIF GPS): the noise comes from the residuals and the tilt from
-    the cameras' own axes (a nadir flight: the x and y axes horizontal)."""
+    the flight's own plane (flown at one height: "level"), or, asked for, from the cameras' own axes (a
+    nadir flight: the x and y axes horizontal, "vertical")."""
     names, src, tgt, R_rec, _, (s, R, t) = _level_flight(3, 60)
     n = len(names)
     tgt = tgt.copy()
     tgt[:, 2] += np.linspace(-15, 15, n) * np.sign(
         src @ R.T[:, 0] - (src @ R.T[:, 0]).mean()
     )  # bad GPS heights
-    geo = estimate(names, src, tgt, 3.0, R_rec, None, pos_std=np.full((n, 3), np.nan))
-    assert geo.noise["orientation_prior"] == "vertical" and geo.noise["position_source"] == "estimated"
-    assert geo.noise["vertical_m"] > 3 * geo.noise["horizontal_m"]  # the heights' noise is seen
-    up = geo.R @ R.T @ np.array([0.0, 0.0, 1.0])  # the true up in the georeferenced frame
-    assert np.degrees(np.arccos(up[2])) < 1.5
+    unstated = np.full((n, 3), np.nan)
+    for kind, bound in (("level", 0.5), ("vertical", 1.5)):
+        conf = {"orientation_prior": "auto" if kind == "level" else kind}
+        geo = estimate(names, src, tgt, 3.0, R_rec, None, conf=conf, pos_std=unstated)
+        assert geo.noise["orientation_prior"] == kind and geo.noise["position_source"] == "estimated"
+        assert geo.noise["vertical_m"] > 3 * geo.noise["horizontal_m"]  # the heights' noise is seen
+        up = geo.R @ R.T @ np.array([0.0, 0.0, 1.0])  # the true up in the georeferenced frame
+        assert np.degrees(np.arccos(up[2])) < bound, kind
+        assert geo.levels["flight_plane_tilt_deg"] < 1.0
     centres_only = estimate(names, src, tgt, 3.0, conf={"joint": False})
     up0 = centres_only.R @ R.T @ np.array([0.0, 0.0, 1.0])
     assert np.degrees(np.arccos(up0[2])) > 5  # the heights tilt a fit on the centres alone

@@ -47,16 +47,23 @@ default_conf = {
     "min_inlier_ratio": 0.5,
     # the joint refinement (centres, attitudes, orientation prior); False: the initial similarity only
     "joint": True,
-    # "auto": none where most images have a POS attitude, else "vertical" for nadir flights (optical
-    # axes within nadir_spread_deg of their mean, median) and "no_roll" otherwise; or name one, or "none"
+    # "auto": none where most images have a POS attitude; else "level" for a flight at one height (its
+    # centres coplanar, coplanar_ratio: a wind-tilted unstabilised camera biases the axes, an altitude
+    # hold does not), "vertical" for nadir flights (optical axes within nadir_spread_deg of their mean,
+    # median) and "no_roll" otherwise; or name one, or "none"
     "orientation_prior": "auto",
     "nadir_spread_deg": 15.0,
+    "level_ratio": 0.25,  # "level": the centres' std off their plane below this share of its width
     "min_prior_std_deg": 0.5,  # floor of the prior's per-image std (estimated from the axes' spread)
+    "min_level_std_m": 0.05,  # floor of the "level" prior's std of the centres off their plane
     "min_noise_images": 6,  # fewer images: the POS noise is not estimated from the residuals
     "min_pos_std_m": 0.02,  # floors of estimated noise
     "min_att_std_deg": 0.1,
     "noise_iterations": 3,  # refit, re-estimate the unstated noise, refit ...
     "robust_sigmas": 2.5,  # Huber loss beyond this many stds
+    # the POS heights' tilt against the attitudes' or prior's, in that tilt's stds, above which the
+    # heights are taken as tilted (systematic) and the tilt comes from the attitudes or prior alone
+    "height_trend_sigmas": 4.0,
 }
 
 
@@ -159,22 +166,116 @@ def tilt_figures(centres: np.ndarray, R_world_from_cam: list[np.ndarray] | None 
     return out
 
 
-def choose_prior(R_rec: list[np.ndarray] | None, n_attitudes: int, conf: dict) -> str:
-    """The orientation prior of the joint fit: "none", "no_roll" (x axes horizontal) or "vertical"."""
+def choose_prior(R_rec: list[np.ndarray] | None, n_attitudes: int, conf: dict, src=None) -> str:
+    """The orientation prior of the joint fit: "none"; "level" (a flight at one height: its centres'
+    plane is horizontal); "vertical" (nadir: the camera x and y axes horizontal); "no_roll" (x axes)."""
     kind = conf["orientation_prior"]
     if kind != "auto":
         return kind
     if not R_rec or n_attitudes >= 0.5 * len(R_rec):
         return "none"
+    if src is not None and len(src) >= conf["min_noise_images"]:
+        sv = np.linalg.svd(np.asarray(src, float) - np.mean(src, 0), compute_uv=False)
+        if sv[2] < conf["level_ratio"] * sv[1]:
+            return "level"
     axes = np.array([R[:, 2] for R in R_rec])  # optical axes in the reconstruction
     mean = axes.sum(0) / max(np.linalg.norm(axes.sum(0)), 1e-12)
     spread = np.degrees(np.arccos(np.clip(axes @ mean, -1.0, 1.0)))
     return "vertical" if float(np.median(spread)) < conf["nadir_spread_deg"] else "no_roll"
 
 
+def level_std(src: np.ndarray, floor: float) -> float:
+    """The centres' std off their best plane (reconstruction units), at least `floor`."""
+    sv = np.linalg.svd(np.asarray(src, float) - np.mean(src, 0), compute_uv=False)
+    return max(float(sv[2]) / np.sqrt(len(src)), floor)
+
+
 def _prior_axes(kind: str) -> list[int]:
     """Camera axes (columns of R_world_from_cam) that the prior holds horizontal."""
-    return {"none": [], "no_roll": [0], "vertical": [0, 1]}[kind]
+    return {"none": [], "level": [], "no_roll": [0], "vertical": [0, 1]}[kind]
+
+
+def prior_spread_deg(R_rec: list[np.ndarray], kind: str, floor_deg: float) -> np.ndarray:
+    """The per-image std (degrees) of each prior axis, from the cameras' own scatter, whatever the
+    frame: for "vertical" the x and y axes against the mean optical axis; for "no_roll" the x axes
+    against the normal of their best plane. (Measured against the vertical of a wrong frame, the
+    scatter would absorb the frame's tilt and weaken the prior that should correct it.)"""
+    axes = _prior_axes(kind)
+    if not axes:
+        return np.zeros(0)
+    if kind == "vertical":
+        up = np.sum([R[:, 2] for R in R_rec], axis=0)
+    else:
+        up = np.linalg.svd(np.array([R[:, 0] for R in R_rec]), full_matrices=False)[2][-1]
+    up = up / max(np.linalg.norm(up), 1e-12)
+    # about zero, not about their median: a constant tilt in the camera frame (a multicopter pitched
+    # into its flight direction) is each image's deviation too, and averages out over the flight lines
+    spread = [1.4826 * float(np.median(np.abs([up @ R[:, k] for R in R_rec]))) for k in axes]
+    return np.maximum(np.degrees(np.arcsin(np.clip(spread, 0.0, 1.0))), floor_deg)
+
+
+@dataclass
+class JointTerms:
+    """What the joint fit weighs: centres with per-axis stds, attitudes, an orientation prior."""
+
+    src: np.ndarray  # (N, 3) reconstruction centres
+    tgt: np.ndarray  # (N, 3) POS centres, ENU
+    sig_pos: np.ndarray  # (N, 3) metres
+    R_rec: list[np.ndarray] | None  # reconstruction's R_world_from_cam
+    R_pos: list[np.ndarray | None] | None  # POS attitudes (ENU)
+    pairs: list[int]  # images whose attitude is used
+    sig_att: np.ndarray  # (N,) degrees
+    axes: list[int]  # camera axes the prior holds horizontal
+    sig_prior: np.ndarray  # (len(axes),) degrees
+    height_trend: bool  # a plane in the POS heights is free (their tilt says nothing of the model's)
+    sig_level: float | None = None  # "level" prior: the centres' std off a horizontal plane (rec units)
+
+    def parts(self, x: np.ndarray, s0: float, R0: np.ndarray) -> tuple:
+        """Position (N, 3), attitude (P, 3) and prior (N, len(axes)) residuals of parameters x."""
+        R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
+        A = self.src - self.src.mean(0)
+        r_pos = s0 * np.exp(x[3]) * A @ R.T + x[4:7] - self.tgt
+        if self.height_trend:
+            d = self.tgt[:, :2] - self.tgt[:, :2].mean(0)
+            r_pos[:, 2] -= d @ x[7:9]
+        r_att = np.array(
+            [Rotation.from_matrix(self.R_pos[i].T @ R @ self.R_rec[i]).as_rotvec() for i in self.pairs]
+        ).reshape(-1, 3)
+        n = len(self.src)
+        r_pri = np.array([[(R @ self.R_rec[i][:, k])[2] for k in self.axes] for i in range(n)])
+        r_lvl = (A @ R.T)[:, 2] if self.sig_level else np.zeros(0)
+        return r_pos, r_att, r_pri.reshape(n, len(self.axes)), r_lvl
+
+    def residuals(self, x: np.ndarray, s0: float, R0: np.ndarray) -> np.ndarray:
+        r_pos, r_att, r_pri, r_lvl = self.parts(x, s0, R0)
+        return np.concatenate(
+            [
+                (r_pos / self.sig_pos).ravel(),
+                (r_att / np.radians(self.sig_att[self.pairs])[:, None]).ravel(),
+                (r_pri / np.sin(np.radians(self.sig_prior))).ravel(),
+                r_lvl / (self.sig_level or 1.0),
+            ]
+        )
+
+
+def _uncertainty(sol) -> dict:
+    """1-sigma figures of a least-squares solution (covariance scaled by the reduced chi-square > 1)."""
+    dof = max(len(sol.fun) - len(sol.x), 1)
+    chi2 = float(np.sum(sol.fun**2) / dof)
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac) * max(chi2, 1.0)
+    except np.linalg.LinAlgError:
+        cov = np.full((len(sol.x),) * 2, np.inf)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    rot = np.degrees(sd[:3])
+    return {
+        "rotation_deg": {"east": float(rot[0]), "north": float(rot[1]), "up": float(rot[2])},
+        "tilt_deg": float(np.hypot(rot[0], rot[1])),
+        "heading_deg": float(rot[2]),
+        "scale_rel": float(sd[3]),
+        "centroid_m": {"east": float(sd[4]), "north": float(sd[5]), "up": float(sd[6])},
+        "reduced_chi2": chi2,
+    }
 
 
 def refine_joint(
@@ -187,104 +288,102 @@ def refine_joint(
     att_std_deg: np.ndarray | None = None,
     conf: dict | None = None,
     default_std: float = 1.0,
+    height_trend: bool = False,
 ) -> tuple[float, np.ndarray, np.ndarray, dict, dict]:
     """Weighted least squares of a similarity over centres, attitudes and an orientation prior.
 
     src, tgt: (N, 3) reconstruction and POS centres; init: (scale, R, t) with tgt ~ scale R src + t;
     pos_std: (N, 3) per-axis position std in metres, NaN where the POS states none (estimated from the
     residuals, pooled over the images: east and north together, up alone; `default_std` where too few
-    images); att_std_deg: (N,) likewise for the attitudes. Returns scale, R, t, the noise used and the
-    fit's 1-sigma uncertainty.
+    images); att_std_deg: (N,) likewise for the attitudes. `height_trend`: the POS heights may hold a
+    plane of their own (a drifting barometer or GNSS height), so only the attitudes or the prior fix
+    the tilt. Returns scale, R, t, the noise used and the fit's 1-sigma uncertainty.
     """
     conf = {**default_conf, **(conf or {})}
     src, tgt = np.asarray(src, float), np.asarray(tgt, float)
     n = len(src)
-    pairs = [] if R_rec is None or R_pos is None else [i for i, Rp in enumerate(R_pos) if Rp is not None]
-    prior = choose_prior(R_rec, len(pairs), conf)
-    axes = _prior_axes(prior) if R_rec is not None else []
     s0, R0, t0 = init
-    c_mean = src.mean(0)
-    x0 = np.r_[np.zeros(3), 0.0, s0 * R0 @ c_mean + t0]  # world rotation, log scale, centroid in ENU
-    A = src - c_mean
+    pairs = [] if R_rec is None or R_pos is None else [i for i, Rp in enumerate(R_pos) if Rp is not None]
+    prior = choose_prior(R_rec, len(pairs), conf, src) if R_rec is not None else "none"
     # attitudes far off the initial rotation (a wrong gimbal reading) are left out
     pairs = [
         i for i in pairs if _rotation_angle_deg(R_pos[i].T @ R0 @ R_rec[i]) <= conf["attitude_inlier_deg"]
     ]
     pos_stated = np.isfinite(pos_std)
-    att_stated = np.isfinite(np.asarray(att_std_deg, float)) if att_std_deg is not None else np.zeros(n, bool)
-    sig_pos = np.where(pos_stated, pos_std, default_std)
-    sig_att = np.where(att_stated, att_std_deg if att_std_deg is not None else 1.0, 1.0)
-    sig_prior = np.full(len(axes), 5.0)  # degrees, per prior axis
+    att_std = np.full(n, np.nan) if att_std_deg is None else np.asarray(att_std_deg, float)
+    att_stated = np.isfinite(att_std)
+    terms = JointTerms(
+        src, tgt, np.where(pos_stated, pos_std, default_std), R_rec, R_pos, pairs,
+        np.where(att_stated, att_std, 1.0), _prior_axes(prior),
+        prior_spread_deg(R_rec, prior, conf["min_prior_std_deg"]) if R_rec is not None else np.zeros(0),
+        height_trend,
+        level_std(src, conf["min_level_std_m"] / max(s0, 1e-12)) if prior == "level" else None,
+    )  # fmt: skip
     est_pos = n >= conf["min_noise_images"] and not pos_stated.all()
     est_att = len(pairs) >= conf["min_noise_images"] and not att_stated[pairs].all()
-
-    def parts(x):
-        R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
-        s = s0 * np.exp(x[3])
-        r_pos = s * A @ R.T + x[4:7] - tgt
-        r_att = np.array(
-            [Rotation.from_matrix(R_pos[i].T @ R @ R_rec[i]).as_rotvec() for i in pairs]
-        ).reshape(-1, 3)
-        r_pri = np.array([[(R @ R_rec[i][:, k])[2] for k in axes] for i in range(n)]).reshape(n, len(axes))
-        return r_pos, r_att, r_pri
-
-    def residuals(x):
-        r_pos, r_att, r_pri = parts(x)
-        return np.concatenate(
-            [
-                (r_pos / sig_pos).ravel(),
-                (r_att / np.radians(sig_att[pairs])[:, None]).ravel(),
-                (r_pri / np.sin(np.radians(sig_prior))).ravel(),
-            ]
-        )
-
-    x = x0
+    x = np.r_[np.zeros(3), 0.0, s0 * R0 @ src.mean(0) + t0, np.zeros(2 if height_trend else 0)]
+    fit = {"loss": "huber", "f_scale": conf["robust_sigmas"], "args": (s0, R0)}
     for _ in range(max(1, conf["noise_iterations"])):
-        x = least_squares(residuals, x, loss="huber", f_scale=conf["robust_sigmas"], x_scale=1.0).x
-        r_pos, r_att, r_pri = parts(x)
+        x = least_squares(terms.residuals, x, **fit).x
+        r_pos, r_att, _, _ = terms.parts(x, s0, R0)
         if est_pos:
             h = max(_robust_std(r_pos[:, :2]), conf["min_pos_std_m"])
             v = max(_robust_std(r_pos[:, 2]), conf["min_pos_std_m"])
-            sig_pos = np.where(pos_stated, pos_std, np.array([h, h, v]))
+            terms.sig_pos = np.where(pos_stated, pos_std, np.array([h, h, v]))
         if est_att:
             a = max(float(np.degrees(_robust_std(r_att))), conf["min_att_std_deg"])
-            sig_att = np.where(att_stated, sig_att, a)
-        if axes:
-            spread = [min(_robust_std(r_pri[:, j]), 1.0) for j in range(len(axes))]
-            sig_prior = np.maximum(np.degrees(np.arcsin(spread)), conf["min_prior_std_deg"])
-    sol = least_squares(residuals, x, loss="huber", f_scale=conf["robust_sigmas"], x_scale=1.0)
-    x = sol.x
-    R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
-    s = float(s0 * np.exp(x[3]))
-    t = x[4:7] - s * R @ c_mean
-    J = sol.jac
-    dof = max(len(sol.fun) - len(x), 1)
-    chi2 = float(np.sum(sol.fun**2) / dof)
-    try:
-        cov = np.linalg.inv(J.T @ J) * max(chi2, 1.0)
-    except np.linalg.LinAlgError:
-        cov = np.full((7, 7), np.inf)
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    rot_deg = np.degrees(sd[:3])
-    uncertainty = {
-        "rotation_deg": {"east": float(rot_deg[0]), "north": float(rot_deg[1]), "up": float(rot_deg[2])},
-        "tilt_deg": float(np.hypot(rot_deg[0], rot_deg[1])),
-        "heading_deg": float(rot_deg[2]),
-        "scale_rel": float(sd[3]),
-        "centroid_m": {"east": float(sd[4]), "north": float(sd[5]), "up": float(sd[6])},
-        "reduced_chi2": chi2,
-    }
-    h_src = "stated" if pos_stated.all() else ("estimated" if est_pos else "default")
+            terms.sig_att = np.where(att_stated, terms.sig_att, a)
+    sol = least_squares(terms.residuals, x, **fit)
+    R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0
+    s = float(s0 * np.exp(sol.x[3]))
+    t = sol.x[4:7] - s * R @ src.mean(0)
     noise = {
-        "horizontal_m": float(np.median(sig_pos[:, 0])),
-        "vertical_m": float(np.median(sig_pos[:, 2])),
-        "position_source": h_src,
-        "attitude_deg": float(np.median(sig_att[pairs])) if pairs else None,
+        "horizontal_m": float(np.median(terms.sig_pos[:, 0])),
+        "vertical_m": float(np.median(terms.sig_pos[:, 2])),
+        "position_source": "stated" if pos_stated.all() else ("estimated" if est_pos else "default"),
+        "attitude_deg": float(np.median(terms.sig_att[pairs])) if pairs else None,
         "attitudes_used": len(pairs),
-        "orientation_prior": prior if axes else "none",
-        "prior_deg": [float(v) for v in sig_prior] if axes else None,
+        "orientation_prior": prior,
+        "prior_deg": [float(v) for v in terms.sig_prior] if terms.axes else None,
+        "level_std_m": s * terms.sig_level if terms.sig_level else None,
+        "height_trend_deg": ([float(np.degrees(np.arctan(v))) for v in sol.x[7:9]] if height_trend else None),
     }
-    return s, R, t, noise, uncertainty
+    return s, R, t, noise, _uncertainty(sol)
+
+
+def _up_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """Angle between the vertical of two rotations ENU_from_reconstruction (their tilts' difference)."""
+    return float(np.degrees(np.arccos(np.clip((Ra.T @ [0, 0, 1]) @ (Rb.T @ [0, 0, 1]), -1.0, 1.0))))
+
+
+def joint_fit(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    init: tuple[float, np.ndarray, np.ndarray],
+    pos_std: np.ndarray,
+    R_rec, R_pos, att_std_deg, conf: dict, default_std: float,
+) -> tuple[float, np.ndarray, np.ndarray, dict, dict]:  # fmt: skip
+    """refine_joint over everything; then, where attitudes or a prior fix the tilt on their own, the
+    same with a free plane in the POS heights. When the two tilts differ by more than
+    conf["height_trend_sigmas"] times the second's std, the heights are tilted against the attitudes
+    or camera axes (a systematic GNSS or barometer error, which no per-image noise describes): the
+    second fit is kept, and noise["height_trend"] says so."""
+    args = (src, tgt, init, pos_std, R_rec, R_pos, att_std_deg, conf, default_std)
+    full = refine_joint(*args)
+    noise = full[3]
+    if not (noise["attitudes_used"] >= 3 or noise["orientation_prior"] != "none") or len(src) < 6:
+        return full
+    free = refine_joint(*args, height_trend=True)
+    delta = _up_angle_deg(full[1], free[1])
+    bound = conf["height_trend_sigmas"] * max(free[4]["tilt_deg"], 1e-6)
+    chosen = free if delta > bound else full
+    chosen[3]["height_trend"] = {
+        "tilt_difference_deg": delta,
+        "bound_deg": bound,
+        "heights_tilted": bool(delta > bound),
+        "trend_deg": free[3]["height_trend_deg"],
+    }
+    return chosen
 
 
 def estimate(
@@ -337,14 +436,19 @@ def estimate(
     noise, unc = {}, {}
     if conf["joint"]:
         std = np.full((len(src), 3), float(sigma)) if pos_std is None else np.asarray(pos_std, float)
-        s, R, t, noise, unc = refine_joint(
-            src, tgt, (s, R, t), std, R_rec, R_pos, att_std_deg, conf, default_std=float(sigma)
+        s, R, t, noise, unc = joint_fit(
+            src, tgt, (s, R, t), std, R_rec, R_pos, att_std_deg, conf, float(sigma)
         )
         terms = ["centres"]
         if noise["attitudes_used"]:
             terms.append(f"{noise['attitudes_used']} attitudes")
         if noise["orientation_prior"] != "none":
             terms.append(f"{noise['orientation_prior']} prior")
+        if noise.get("height_trend", {}).get("heights_tilted"):
+            terms.append(
+                f"POS heights tilted {noise['height_trend']['tilt_difference_deg']:.1f} degrees against "
+                "them: tilt from them alone"
+            )
         method += ", joint refinement (" + ", ".join(terms) + ")"
         if noise["position_source"] != "stated":
             max_error = max(conf["max_error_sigmas"] * noise["horizontal_m"], conf["min_max_error"])
