@@ -22,6 +22,16 @@ class ApiSettings(Settings):
     max_upload_bytes: int = Field(512 * MB, ge=1, description="Largest image accepted, in bytes")
     max_files_per_request: int = Field(1000, ge=1, description="Most files in one upload request")
     max_pos_bytes: int = Field(64 * MB, ge=1, description="Largest POS file accepted, in bytes")
+    max_json_bytes: int = Field(1 * MB, ge=1024, description="Largest JSON request body, in bytes")
+    max_request_bytes: int = Field(
+        2048 * MB,
+        ge=1,
+        description="Largest multipart image upload request, in bytes (larger sets: the uploads API)",
+    )
+    body_read_timeout_s: float = Field(
+        30.0, gt=0, description="A request whose body stops arriving for this long is answered 408"
+    )
+    max_validation_errors: int = Field(20, ge=1, description="Validation errors listed in a 422 at most")
     upload_part_size: int = Field(
         8 * MB, ge=5 * MB, description="Part size of multipart uploads (S3 needs >= 5 MiB)"
     )

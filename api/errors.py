@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import logging
 
 from fastapi import FastAPI, Request, status
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from services.pos import PosError
@@ -23,8 +25,31 @@ def pos_error_detail(e: PosError, message: str = "invalid POS") -> dict[str, obj
     return {"message": message, "errors": e.errors}
 
 
+def validation_detail(errors: list[dict], request: Request) -> list[dict]:
+    """A 422's errors: the first few (settings.max_validation_errors), each with its location, message
+    and type, and the offending input only when it is short: a large body is never echoed back."""
+    limit = getattr(getattr(request.app.state, "settings", None), "max_validation_errors", 20)
+    out = []
+    for err in errors[:limit]:
+        item = {k: err[k] for k in ("type", "loc", "msg") if k in err}
+        try:
+            text = json.dumps(err["input"], allow_nan=False) if "input" in err else None
+        except (TypeError, ValueError):  # NaN, bytes ...: not shown
+            text = None
+        if text is not None and len(text) <= 200:
+            item["input"] = err["input"]
+        out.append(item)
+    if len(errors) > limit:
+        out.append({"type": "too_many_errors", "loc": [], "msg": f"{len(errors) - limit} more errors"})
+    return out
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Map library exceptions that escape a route to statuses (HTTPException keeps its own)."""
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, e: RequestValidationError) -> JSONResponse:
+        return error(status.HTTP_422_UNPROCESSABLE_CONTENT, validation_detail(e.errors(), request))
 
     @app.exception_handler(NotFoundError)
     async def _not_found(_: Request, e: NotFoundError) -> JSONResponse:

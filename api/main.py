@@ -16,7 +16,7 @@ from starlette.concurrency import run_in_threadpool
 from api.bootstrap import ensure_api_key
 from api.config import ApiSettings
 from api.errors import install_error_handlers
-from api.middleware import RequestLogMiddleware
+from api.middleware import BodyLimitMiddleware, RequestLogMiddleware, route_limits
 from api.routes import ROUTERS
 from shared.config import Settings
 from shared.db.session import make_engine, make_sessionmaker, upgrade_database
@@ -55,6 +55,19 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.engine.dispose()
 
 
+def body_limits(settings: ApiSettings):
+    """Request body limits per route: image uploads, parts of resumable uploads, POS files; JSON else."""
+    project = r"/projects/[^/]+"
+    return route_limits(
+        [
+            ("POST", project + "/images", settings.max_request_bytes),
+            ("PUT", project + r"/uploads/[^/]+/parts/\d+", 2 * settings.upload_part_size),
+            ("POST", project + "/pos", settings.max_pos_bytes + 1024 * 1024),
+        ],
+        settings.max_json_bytes,
+    )
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """An app on its own engine, storage and (lazily created) dispatcher, all kept in app.state."""
     if settings is None:
@@ -72,6 +85,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
     app.state.storage = get_storage(settings)
     app.state.dispatcher = None  # created on first use (api.deps.get_dispatcher)
+    app.add_middleware(
+        BodyLimitMiddleware, limit_for=body_limits(settings), read_timeout_s=settings.body_read_timeout_s
+    )
     app.add_middleware(RequestLogMiddleware)
     install_error_handlers(app)
     for router in ROUTERS:

@@ -44,9 +44,10 @@ GROUND_STAGES = frozenset(
 
 
 class JobOptions(BaseModel):
-    """Every knob of a job; unknown fields are rejected so that a typo never passes silently."""
+    """Every knob of a job; unknown fields are rejected so that a typo never passes silently, and so
+    are NaN and infinities."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     stages: list[Stage] = Field(
         default_factory=lambda: list(DEFAULT_STAGES),

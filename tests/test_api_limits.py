@@ -1,0 +1,151 @@
+"""Hostile requests: huge or never-ending bodies, floods of invalid fields, NaN: answered at once with a
+short 4xx, and nothing stored."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import time
+
+import pytest
+
+from api.middleware import BodyLimitMiddleware, route_limits
+
+
+def _run(app, scope: dict, messages: list[dict] | None = None, hang: bool = False) -> list[dict]:
+    """Drive an ASGI app with `messages` as the request body (or a client that never sends it)."""
+    sent: list[dict] = []
+    queue = list(messages or [])
+
+    async def receive():
+        if hang or not queue:
+            await asyncio.sleep(3600)
+        return queue.pop(0)
+
+    async def send(message):
+        sent.append(message)
+
+    asyncio.run(app(scope, receive, send))
+    return sent
+
+
+def _http(method: str, path: str, headers: dict[str, str] | None = None) -> dict:
+    return {
+        "type": "http",
+        "method": method,
+        "path": path,
+        "headers": [(k.lower().encode(), v.encode()) for k, v in (headers or {}).items()],
+    }
+
+
+async def _echo_app(scope, receive, send):
+    """Reads the whole body and answers 200 with its length."""
+    body = b""
+    while True:
+        m = await receive()
+        body += m.get("body", b"")
+        if not m.get("more_body"):
+            break
+    await send({"type": "http.response.start", "status": 200, "headers": []})
+    await send({"type": "http.response.body", "body": str(len(body)).encode()})
+
+
+def test_declared_length_over_the_limit_is_413_before_any_body_is_read():
+    called = []
+
+    async def app(scope, receive, send):  # never reached
+        called.append(1)
+
+    mw = BodyLimitMiddleware(app, route_limits([], 1000), read_timeout_s=5.0)
+    t0 = time.perf_counter()
+    sent = _run(mw, _http("POST", "/projects", {"Content-Length": "2147483648"}), hang=True)
+    assert time.perf_counter() - t0 < 1.0 and not called
+    assert sent[0]["status"] == 413 and b"2147483648" in sent[1]["body"]
+
+
+def test_streamed_body_over_the_limit_is_cut_at_the_limit():
+    mw = BodyLimitMiddleware(_echo_app, route_limits([("PUT", r"/big/\d+", 10_000)], 100), read_timeout_s=5)
+    chunks = [{"type": "http.request", "body": b"x" * 60, "more_body": True}] * 3
+    sent = _run(mw, _http("POST", "/small"), chunks)  # no Content-Length: chunked
+    assert sent[0]["status"] == 413 and len(sent) == 2
+    ok = _run(mw, _http("PUT", "/big/7"), [*chunks[:2], {"type": "http.request", "body": b"y"}])
+    assert ok[0]["status"] == 200 and ok[1]["body"] == b"121"  # that route's own limit
+
+
+def test_a_body_that_stops_arriving_is_408():
+    mw = BodyLimitMiddleware(_echo_app, route_limits([], 1000), read_timeout_s=0.2)
+    t0 = time.perf_counter()
+    sent = _run(mw, _http("POST", "/projects", {"Content-Length": "10"}), hang=True)
+    assert sent[0]["status"] == 408 and time.perf_counter() - t0 < 2.0
+
+
+@pytest.fixture(scope="module")
+def limited(tmp_path_factory, request):
+    """The API (embedded backend) with a 64 KiB JSON limit: a client, a tenant's headers, a project."""
+    from conftest import ApiEnv, make_api_settings
+    from fastapi.testclient import TestClient
+
+    from api.main import create_app
+
+    settings = make_api_settings(
+        "sqlite-local", tmp_path_factory.mktemp("limits"), request, max_json_bytes=65536
+    )
+    with TestClient(create_app(settings)) as c:
+        env = ApiEnv("sqlite-local", c.app, c, None)
+        headers = env.tenant().headers
+        pid = c.post("/projects", json={"name": "limits"}, headers=headers).json()["id"]
+        yield c, headers, pid
+
+
+def test_a_huge_json_body_is_413_at_once_and_stores_nothing(limited):
+    c, h, pid = limited
+    options = {f"opt{i}": i for i in range(200_000)}  # 3.5 MB of job options
+    body = json.dumps({"options": options}).encode()
+    t0 = time.perf_counter()
+    r = c.post(f"/projects/{pid}/jobs", content=body, headers={**h, "Content-Type": "application/json"})
+    assert r.status_code == 413 and len(r.content) < 200 and time.perf_counter() - t0 < 2.0
+    assert c.get(f"/projects/{pid}/jobs", headers=h).json() == []
+    assert c.get("/healthz").status_code == 200
+
+
+def test_many_invalid_fields_get_a_short_422(limited):
+    c, h, pid = limited
+    options = {f"opt{i}": "x" * 50 for i in range(500)}  # 30 KB: under the limit, 500 unknown fields
+    r = c.post(f"/projects/{pid}/jobs", json={"options": options}, headers=h)
+    assert r.status_code == 422
+    detail = r.json()["detail"]
+    assert len(detail) == 21 and detail[-1]["type"] == "too_many_errors" and "480 more" in detail[-1]["msg"]
+    assert len(r.content) < 5000
+
+
+def test_nan_in_job_options_is_422_not_500(limited):
+    c, h, pid = limited
+    for value in ("NaN", "Infinity", "-Infinity"):
+        body = '{"options": {"splat_time_budget_s": ' + value + "}}"
+        r = c.post(f"/projects/{pid}/jobs", content=body, headers={**h, "Content-Type": "application/json"})
+        assert r.status_code == 422, (value, r.text)
+        assert "finite" in r.text
+    assert c.get(f"/projects/{pid}/jobs", headers=h).json() == []
+
+
+def test_uvicorn_answers_a_lying_content_length_at_once(tmp_path, request):
+    """Over a real socket: `Content-Length: 2147483648` and a two-byte body is answered 413 at once
+    instead of holding the connection open for the rest."""
+    from conftest import make_api_settings, settings_environment
+    from servers import start_uvicorn
+
+    settings = make_api_settings("sqlite-local", tmp_path, request)
+    server = start_uvicorn(settings_environment(settings), tmp_path / "uvicorn.log")
+    try:
+        host, port = server.base_url.removeprefix("http://").split(":")
+        with socket.create_connection((host, int(port)), timeout=5) as sock:
+            sock.sendall(
+                b"POST /projects HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                b"Content-Length: 2147483648\r\n\r\n{}"
+            )
+            t0 = time.perf_counter()
+            reply = sock.recv(4096)
+        assert reply.startswith(b"HTTP/1.1 413") and time.perf_counter() - t0 < 2.0
+    finally:
+        server.stop()
