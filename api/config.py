@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, field_validator
 
 from shared.config import Settings
@@ -32,6 +34,15 @@ class ApiSettings(Settings):
         30.0, gt=0, description="A request whose body stops arriving for this long is answered 408"
     )
     max_validation_errors: int = Field(20, ge=1, description="Validation errors listed in a 422 at most")
+    rate_limit_per_minute: int = Field(
+        1200, ge=0, description="Requests a minute per API key (429 with Retry-After past it); 0: no limit"
+    )
+    rate_limit_burst: int = Field(200, ge=1, description="Requests at once per API key (in-process limiter)")
+    rate_limit_backend: Literal["auto", "memory", "redis"] = Field(
+        "auto",
+        description="Where the counts live: redis (the broker's Redis, shared by every API process), "
+        "memory (this process); auto: redis with the Celery dispatcher",
+    )
     upload_part_size: int = Field(
         8 * MB, ge=5 * MB, description="Part size of multipart uploads (S3 needs >= 5 MiB)"
     )

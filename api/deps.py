@@ -7,6 +7,7 @@ settings can live in one process (tests). Tests replace `get_dispatcher` with
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Iterator
 from typing import Annotated
@@ -71,7 +72,8 @@ def get_current_tenant(
     settings: SettingsDep,
     _credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> Tenant:
-    """The tenant of the bearer API key; 401 with the reason when missing, malformed, unknown or revoked."""
+    """The tenant of the bearer API key; 401 with the reason when missing, malformed, unknown or revoked,
+    429 with Retry-After when the key has spent its rate limit."""
     header = request.headers.get("authorization")
     if not header:
         raise HTTPException(
@@ -89,6 +91,14 @@ def get_current_tenant(
         raise _unauthorized("invalid API key")
     if key.revoked_at is not None:
         raise _unauthorized("API key revoked")
+    wait = request.app.state.rate_limiter.hit(key.id)
+    if wait is not None:
+        raise HTTPException(
+            status.HTTP_429_TOO_MANY_REQUESTS,
+            f"rate limit of {settings.rate_limit_per_minute} requests a minute for this API key reached; "
+            f"retry in {math.ceil(wait)} s",
+            headers={"Retry-After": str(max(1, math.ceil(wait)))},
+        )
     request.state.tenant_id = key.tenant_id  # for the request log
     request.state.api_key_prefix = key.prefix
     return key.tenant

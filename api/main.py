@@ -17,6 +17,7 @@ from api.bootstrap import ensure_api_key
 from api.config import ApiSettings
 from api.errors import install_error_handlers
 from api.middleware import BodyLimitMiddleware, RequestLogMiddleware, route_limits
+from api.ratelimit import make_rate_limiter
 from api.routes import ROUTERS
 from shared.config import Settings
 from shared.db.session import make_engine, make_sessionmaker, upgrade_database
@@ -85,6 +86,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
     app.state.storage = get_storage(settings)
     app.state.dispatcher = None  # created on first use (api.deps.get_dispatcher)
+    app.state.rate_limiter = make_rate_limiter(settings)
     app.add_middleware(
         BodyLimitMiddleware, limit_for=body_limits(settings), read_timeout_s=settings.body_read_timeout_s
     )

@@ -149,3 +149,48 @@ def test_uvicorn_answers_a_lying_content_length_at_once(tmp_path, request):
         assert reply.startswith(b"HTTP/1.1 413") and time.perf_counter() - t0 < 2.0
     finally:
         server.stop()
+
+
+# -- rate limits -------------------------------------------------------------------------------------
+def test_memory_rate_limiter_refills_at_its_rate():
+    from api.ratelimit import MemoryRateLimiter
+
+    now = [0.0]
+    rl = MemoryRateLimiter(per_minute=60, burst=3, clock=lambda: now[0])
+    assert [rl.hit("k") for _ in range(3)] == [None, None, None]
+    assert rl.hit("k") == pytest.approx(1.0) and rl.hit("other") is None
+    now[0] += 1.0
+    assert rl.hit("k") is None and rl.hit("k") is not None
+
+
+def test_redis_rate_limiter_is_shared_by_every_instance(redis_url):
+    from api.ratelimit import RedisRateLimiter
+
+    a = RedisRateLimiter(redis_url, limit=3, window_s=30.0, prefix="midview:test-rate:")
+    b = RedisRateLimiter(redis_url, limit=3, window_s=30.0, prefix="midview:test-rate:")
+    key = f"key-{time.time_ns()}"
+    assert [a.hit(key), b.hit(key), a.hit(key)] == [None, None, None]
+    wait = b.hit(key)
+    assert wait is not None and 0 < wait <= 30.0
+    dead = RedisRateLimiter("redis://127.0.0.1:1/0", limit=1)
+    assert dead.hit(key) is None and dead.hit(key) is None  # Redis down: fails open
+
+
+def test_api_answers_429_with_retry_after_per_key(tmp_path, request):
+    from conftest import ApiEnv, make_api_settings
+    from fastapi.testclient import TestClient
+
+    from api.main import create_app
+
+    settings = make_api_settings(
+        "sqlite-local", tmp_path, request, rate_limit_per_minute=60, rate_limit_burst=5
+    )
+    with TestClient(create_app(settings)) as c:
+        env = ApiEnv("sqlite-local", c.app, c, None)
+        a, b = env.tenant().headers, env.tenant().headers
+        codes = [c.get("/projects", headers=a).status_code for _ in range(8)]
+        assert codes[:5] == [200] * 5 and set(codes[5:]) == {429}
+        r = c.get("/projects", headers=a)
+        assert r.status_code == 429 and int(r.headers["Retry-After"]) >= 1 and "rate limit" in r.text
+        assert c.get("/projects", headers=b).status_code == 200  # another key has its own allowance
+        assert c.get("/healthz").status_code == 200  # probes are not limited
