@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from cli import evaluate, match, pos, run, serve, sfm, splat, synth, worker
+from cli import admin, evaluate, match, pos, run, serve, sfm, splat, synth, worker
 from shared.config import get_settings
 from shared.logging import setup_logging
 
@@ -31,6 +31,7 @@ app.command("run")(run.run)
 app.command("demo")(run.demo)
 app.command("serve")(serve.serve)
 app.command("worker")(worker.worker)
+app.add_typer(admin.app, name="admin")
 app.add_typer(evaluate.app, name="eval")
 app.add_typer(match.app, name="match")
 app.add_typer(pos.app, name="pos")
