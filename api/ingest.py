@@ -100,6 +100,20 @@ def declared_sha256(values: list[str], filenames: list[str]) -> tuple[dict[str, 
     return out, errors
 
 
+def jpeg_check(data: bytes, filename: str) -> None:
+    """Decode a JPEG in full with libjpeg-turbo in strict mode: corrupt entropy-coded data between intact
+    markers (which OpenCV decodes to grey blocks with a warning on stderr) is an ImageError. Colour
+    spaces it cannot convert (CMYK) are left to OpenCV."""
+    import simplejpeg
+
+    try:
+        simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=True, fastdct=True, fastupsample=True)
+    except ValueError as e:
+        text = str(e)
+        if "corrupt" in text.lower() or "premature" in text.lower() or "extraneous" in text.lower():
+            raise ImageError(f"{filename}: corrupt JPEG ({text})") from None
+
+
 def decode_check(path: Path, filename: str) -> tuple[int, int]:
     """(width, height) of an image file, decoded in full; ImageError naming filename when it is truncated
     (JPEG without its end-of-image marker) or cannot be decoded."""
@@ -111,11 +125,25 @@ def decode_check(path: Path, filename: str) -> tuple[int, int]:
         raise ImageError(f"{filename}: not a JPEG file (no start-of-image marker)")
     if is_jpeg and data[-2:].tobytes() != b"\xff\xd9":
         raise ImageError(f"{filename}: truncated JPEG (no end-of-image marker)")
+    if is_jpeg:
+        jpeg_check(data.tobytes(), filename)
     img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
     if img is None or img.size == 0:
         raise ImageError(f"{filename}: cannot decode image")
     height, width = img.shape[:2]
     return int(width), int(height)
+
+
+def exif_meta(path: Path) -> dict:
+    """What a job must know of an image's EXIF without reading it again: its focal length in pixels
+    (`exif_focal_px`, None when the EXIF gives none: then the project needs a cameras.json)."""
+    from services.pos.exif import focal_px, read_exif
+
+    try:
+        focal = focal_px(read_exif(path))
+    except (ImageError, OSError, ValueError):
+        focal = None
+    return {"exif_focal_px": focal}
 
 
 def hash_stream(f: BinaryIO, dest: Path | None = None) -> tuple[str, int]:
@@ -145,6 +173,7 @@ class CheckedImage:
     width: int
     height: int
     uploaded_as: str | None = None
+    meta: dict | None = None  # exif_meta
 
     @property
     def content_type(self) -> str:
@@ -164,7 +193,10 @@ def store_images(
     try:
         for im in images:
             key = image_key_for_name(project.tenant_id, project.id, im.name)
-            meta = {"uploaded_as": im.uploaded_as} if im.uploaded_as and im.uploaded_as != im.name else None
+            meta = {
+                **(im.meta or {}),
+                **({"uploaded_as": im.uploaded_as} if im.uploaded_as and im.uploaded_as != im.name else {}),
+            }
             row, created = crud.add_image(
                 session,
                 project.id,
@@ -174,7 +206,7 @@ def store_images(
                 storage_key=key,
                 width=im.width,
                 height=im.height,
-                metadata=meta,
+                metadata=meta or None,
             )
             if created or not storage.exists(row.storage_key):  # also repairs a lost object
                 storage.put_file(row.storage_key, im.path, content_type=im.content_type)

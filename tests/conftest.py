@@ -295,6 +295,34 @@ def celery_worker(service_settings, tmp_path_factory):
         _stop(proc, timeout=15)
 
 
+def jobbable_project(client, headers, make_jpeg, ground=True, aerial=3, name=None):
+    """A project a job can be created on: `aerial` aerial images (and one ground image), a POS row for
+    each, and a cameras.json for both sets (the test images carry no EXIF). Returns its id."""
+    import uuid
+
+    pid = client.post(
+        "/projects", json={"name": name or f"p-{uuid.uuid4().hex[:8]}"}, headers=headers
+    ).json()["id"]
+    sets = [("aerial", [f"A{i + 1}.jpg" for i in range(aerial)])] + (
+        [("ground", ["G1.jpg"])] if ground else []
+    )
+    names = []
+    for k, (image_set, files) in enumerate(sets):
+        parts = [("files", (f, make_jpeg(seed=10 * k + i), "image/jpeg")) for i, f in enumerate(files)]
+        r = client.post(f"/projects/{pid}/images", params={"set": image_set}, files=parts, headers=headers)
+        assert r.status_code == 201, r.text
+        names += [f"{image_set}/{f}" for f in files]
+    rows = "".join(f"{n},{55.7 + i * 1e-4:.7f},13.19,{100 + i:.2f}\n" for i, n in enumerate(names))
+    r = client.post(
+        f"/projects/{pid}/pos", files={"file": ("pos.csv", "name,lat,lon,h\n" + rows)}, headers=headers
+    )
+    assert r.status_code == 200, r.text
+    cam = {"model": "PINHOLE", "width": 64, "height": 48, "params": [60.0, 60.0, 32.0, 24.0]}
+    r = client.put(f"/projects/{pid}/cameras", json={"aerial": cam, "ground": cam}, headers=headers)
+    assert r.status_code == 200, r.text
+    return pid
+
+
 def upload_survey(client, tenant, scene, storage, name=None, cameras=True):
     """Create a project of tenant (id, headers) and upload a survey folder over HTTP (images of both
     sets, pos.csv, cameras.json). `storage` is unused (kept for callers). Returns the project id."""

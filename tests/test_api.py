@@ -205,15 +205,7 @@ def test_project_crud_and_duplicate_name(api_env, make_jpeg) -> None:
 
 def test_other_tenants_ids_are_404_everywhere(api_env, make_jpeg) -> None:
     c, a, b = api_env.client, api_env.tenant(), api_env.tenant()
-    pid = new_project(api_env, a)
-    assert upload(api_env, a, pid, {"A1.jpg": make_jpeg()}).status_code == 201
-    assert upload(api_env, a, pid, {"G1.jpg": make_jpeg(seed=1)}, "ground").status_code == 201
-    assert (
-        c.post(
-            f"/projects/{pid}/pos", files={"file": ("pos.csv", pos_csv(["aerial/A1.jpg"]))}, headers=a.headers
-        ).status_code
-        == 200
-    )
+    pid = _ready_project(api_env, a, make_jpeg)
     job = c.post(f"/projects/{pid}/jobs", json={}, headers=a.headers).json()
     up = c.post(
         f"/projects/{pid}/uploads", json={"name": "aerial/BIG.jpg", "size": 10}, headers=a.headers
@@ -270,7 +262,7 @@ def test_other_tenants_ids_are_404_everywhere(api_env, make_jpeg) -> None:
     assert r.status_code == 404
     # nothing of a's changed
     assert c.get(f"/jobs/{jid}", headers=a.headers).json()["status"] == "queued"
-    assert len(c.get(f"/projects/{pid}/images", headers=a.headers).json()) == 2
+    assert len(c.get(f"/projects/{pid}/images", headers=a.headers).json()) == 4
     assert c.get(f"/webhooks/{hook['id']}", headers=a.headers).status_code == 200
     assert c.get(f"/projects/{pid}/uploads/{uid}", headers=a.headers).status_code == 200
     assert c.get("/webhooks", headers=b.headers).json() == []
@@ -487,18 +479,28 @@ def test_pos_upload_validation_and_listing(api_env, make_jpeg) -> None:
 
 
 # jobs
-def _ready_project(env, tenant, make_jpeg, ground: bool = True, pos: bool = True) -> str:
+def _ready_project(
+    env, tenant, make_jpeg, ground: bool = True, pos: bool = True, aerial: int = 3, cameras: bool = True
+) -> str:
+    """A project with `aerial` aerial images (one ground image), POS rows for all and a cameras.json."""
     pid = new_project(env, tenant)
-    assert upload(env, tenant, pid, {"A1.jpg": make_jpeg(), "A2.jpg": make_jpeg(seed=1)}).status_code == 201
+    files = {f"A{i + 1}.jpg": make_jpeg(seed=i) for i in range(aerial)}
+    assert upload(env, tenant, pid, files).status_code == 201
+    names = [f"aerial/{f}" for f in files]
     if ground:
-        assert upload(env, tenant, pid, {"G1.jpg": make_jpeg(seed=2)}, "ground").status_code == 201
+        assert upload(env, tenant, pid, {"G1.jpg": make_jpeg(seed=20)}, "ground").status_code == 201
+        names.append("ground/G1.jpg")
     if pos:
         r = env.client.post(
-            f"/projects/{pid}/pos",
-            files={"file": ("pos.csv", pos_csv(["aerial/A1.jpg", "aerial/A2.jpg"]))},
-            headers=tenant.headers,
+            f"/projects/{pid}/pos", files={"file": ("pos.csv", pos_csv(names))}, headers=tenant.headers
         )
         assert r.status_code == 200
+    if cameras:
+        cam = {"model": "PINHOLE", "width": 64, "height": 48, "params": [60.0, 60.0, 32.0, 24.0]}
+        r = env.client.put(
+            f"/projects/{pid}/cameras", json={"aerial": cam, "ground": cam}, headers=tenant.headers
+        )
+        assert r.status_code == 200, r.text
     return pid
 
 
@@ -552,6 +554,25 @@ def test_job_create_validation_and_preconditions(api_env, make_jpeg) -> None:
     only_aerial = {"options": {"stages": ["train_splat", "aerial_sfm"]}}
     r = c.post(f"/projects/{no_ground}/jobs", json=only_aerial, headers=t.headers)
     assert r.status_code == 201 and r.json()["options"]["stages"] == ["aerial_sfm", "train_splat"]
+    # what would fail minutes later fails now: too few aerial images, images without POS, no intrinsics
+    two = _ready_project(api_env, t, make_jpeg, aerial=2)
+    r = c.post(f"/projects/{two}/jobs", json={}, headers=t.headers)
+    assert r.status_code == 409 and "at least 3" in r.json()["detail"]
+    partial = _ready_project(api_env, t, make_jpeg, pos=False)
+    r = c.post(
+        f"/projects/{partial}/pos",
+        files={"file": ("p.csv", pos_csv(["aerial/A1.jpg", "aerial/A2.jpg", "aerial/A3.jpg"]))},
+        headers=t.headers,
+    )
+    assert r.status_code == 200
+    r = c.post(f"/projects/{partial}/jobs", json={}, headers=t.headers)
+    assert r.status_code == 409 and "1 image(s) have no POS row: ground/G1.jpg" in r.json()["detail"]
+    no_cams = _ready_project(api_env, t, make_jpeg, cameras=False)
+    r = c.post(f"/projects/{no_cams}/jobs", json={}, headers=t.headers)
+    assert r.status_code == 409 and "no intrinsics for the aerial images" in r.json()["detail"]
+    assert "no EXIF focal length" in r.json()["detail"]
+    with api_env.session() as s:
+        assert [crud.list_jobs(s, p) for p in (two, partial, no_cams)] == [[], [], []]
     r = c.post(f"/projects/{pid}/jobs", headers=t.headers)  # no body: every default
     assert r.status_code == 201 and r.json()["options"]["stages"][-1] == "combined_sfm"
 
@@ -651,3 +672,34 @@ def test_camera_intrinsics_round_trip_and_validation(api_env) -> None:
         assert client.put(url, json=bad, headers=headers).status_code == 422, bad
     assert client.get(url, headers=headers).json() == good  # the bad requests left it untouched
     assert client.get(url, headers=api_env.tenant().headers).status_code == 404  # another tenant
+
+
+def test_a_jobs_inputs_are_frozen_while_it_runs(api_env, make_jpeg) -> None:
+    """A job snapshots its images and POS: deleting an image it uses, or replacing the POS or the
+    intrinsics, is 409 while it is queued or running (nothing is lost); once it has ended they may
+    change, and a rerun on changed inputs is 409 with what changed."""
+    c, t = api_env.client, api_env.tenant()
+    pid = _ready_project(api_env, t, make_jpeg)
+    jid = c.post(f"/projects/{pid}/jobs", json={}, headers=t.headers).json()["id"]
+    with api_env.session() as s:
+        snap = crud.get_job(s, jid).inputs
+    assert sorted(snap["images"]) == ["aerial/A1.jpg", "aerial/A2.jpg", "aerial/A3.jpg", "ground/G1.jpg"]
+    before = snapshot(api_env, t, pid)
+    r = c.delete(f"/projects/{pid}/images/aerial/A2.jpg", headers=t.headers)
+    assert r.status_code == 409 and jid in r.json()["detail"]
+    pos = pos_csv(["aerial/A1.jpg", "aerial/A2.jpg", "aerial/A3.jpg", "ground/G1.jpg"], lat=56.0)
+    assert c.post(f"/projects/{pid}/pos", files={"file": ("p.csv", pos)}, headers=t.headers).status_code == 409
+    cam = {"model": "PINHOLE", "width": 64, "height": 48, "params": [61.0, 61.0, 32.0, 24.0]}
+    assert c.put(f"/projects/{pid}/cameras", json={"aerial": cam}, headers=t.headers).status_code == 409
+    assert snapshot(api_env, t, pid) == before
+    # an image uploaded meanwhile is not the job's
+    assert upload(api_env, t, pid, {"A9.jpg": make_jpeg(seed=9)}).status_code == 201
+    assert c.delete(f"/projects/{pid}/images/aerial/A9.jpg", headers=t.headers).status_code == 204
+
+    with api_env.session() as s:  # the job ends
+        crud.set_job_status(s, jid, JobStatus.running)
+        crud.set_job_status(s, jid, JobStatus.succeeded)
+        s.commit()
+    assert c.delete(f"/projects/{pid}/images/aerial/A2.jpg", headers=t.headers).status_code == 204
+    r = c.post(f"/jobs/{jid}/rerun", json={}, headers=t.headers)
+    assert r.status_code == 409 and "image aerial/A2.jpg was deleted" in r.json()["detail"]

@@ -20,22 +20,11 @@ from shared.storage.keys import job_key
 
 
 def _job(env, tenant, make_jpeg) -> tuple[str, str]:
-    """(project id, job id) of a new queued job (one aerial image with POS, one ground image)."""
+    """(project id, job id) of a new queued job (three aerial images, one ground image, POS, cameras)."""
+    from conftest import jobbable_project
+
     c = env.client
-    pid = c.post("/projects", json={"name": f"p-{uuid.uuid4().hex[:8]}"}, headers=tenant.headers).json()["id"]
-    for image_set, name in (("aerial", "A1.jpg"), ("ground", "G1.jpg")):
-        r = c.post(
-            f"/projects/{pid}/images",
-            params={"set": image_set},
-            files={"f": (name, make_jpeg(seed=len(name)))},
-            headers=tenant.headers,
-        )
-        assert r.status_code == 201
-    pos = "name,lat,lon,h\naerial/A1.jpg,55.7,13.19,100\n"
-    assert (
-        c.post(f"/projects/{pid}/pos", files={"file": ("pos.csv", pos)}, headers=tenant.headers).status_code
-        == 200
-    )
+    pid = jobbable_project(c, tenant.headers, make_jpeg)
     r = c.post(f"/projects/{pid}/jobs", json={}, headers=tenant.headers)
     assert r.status_code == 201
     return pid, r.json()["id"]

@@ -92,10 +92,13 @@ def test_multipart_upload_registers_the_image(api_env, make_jpeg) -> None:
 def test_multipart_upload_failing_its_checks_is_deleted(api_env, make_jpeg) -> None:
     c, t = api_env.client, api_env.tenant()
     pid = _project(api_env, t)
-    good = make_jpeg(seed=3)
+    good = make_jpeg(seed=3, width=320, height=240)
+    n = len(good)
+    garbled = good[: n // 2] + bytes(min(2000, n // 3)) + good[n // 2 + min(2000, n // 3) :]  # markers intact
     cases = {
         "aerial/SHA.jpg": (good, "0" * 64, "does not match"),
         "aerial/TRUNC.jpg": (good[:-100], None, "truncated JPEG"),
+        "aerial/GARBLED.jpg": (garbled, None, "corrupt JPEG"),
         "ground/JUNK.png": (b"\x89PNG not really" * 50, None, "cannot decode"),
     }
     for name, (data, sha, needle) in cases.items():

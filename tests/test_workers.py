@@ -470,9 +470,9 @@ def test_celery_worker_runs_a_job_through_the_broker(service, tiny_survey):
 
 
 def test_celery_failure_fails_the_job_and_queues_the_webhook(service, tiny_survey):
-    """A stage error that no retry can fix (no camera intrinsics: the synthetic images carry no EXIF and
-    the project has no cameras.json) fails the stage and the job, with the error text, and queues the
-    job.failed webhook delivery."""
+    """A stage error that no retry can fix (the project's cameras.json names a camera of another size
+    than the images) fails the stage and the job, with the error text, and queues the job.failed webhook
+    delivery."""
     import sqlalchemy as sa
     from conftest import upload_survey, wait_for_job
 
@@ -481,15 +481,17 @@ def test_celery_failure_fails_the_job_and_queues_the_webhook(service, tiny_surve
     c, h = service.client, service.tenant.headers
     r = c.post("/webhooks", json={"url": "http://127.0.0.1:9/hook"}, headers=h)
     assert r.status_code == 201, r.text
-    pid = upload_survey(c, service.tenant, tiny_survey, service.app.state.storage, cameras=False)
+    pid = upload_survey(c, service.tenant, tiny_survey, service.app.state.storage)
+    cam = {"model": "PINHOLE", "width": 640, "height": 480, "params": [500.0, 500.0, 320.0, 240.0]}
+    assert c.put(f"/projects/{pid}/cameras", json={"aerial": cam, "ground": cam}, headers=h).status_code == 200
     job_id = c.post(f"/projects/{pid}/jobs", json={"options": {"stages": ["aerial_sfm"]}}, headers=h).json()[
         "id"
     ]
     job = wait_for_job(c, h, job_id, 120)
     assert job["status"] == "failed", job
-    assert "aerial_sfm" in job["error"] and "EXIF" in job["error"], job["error"]
+    assert "aerial_sfm" in job["error"] and "cameras.json" in job["error"], job["error"]
     assert [(st["stage"], st["status"]) for st in job["stages"]] == [("aerial_sfm", "failed")]
-    assert "EXIF" in job["stages"][0]["error"]
+    assert "the camera is 640x480" in job["stages"][0]["error"]
     with service.app.state.sessionmaker() as s:
         events = s.scalars(sa.select(WebhookDelivery.event).where(WebhookDelivery.job_id == job_id)).all()
     assert events == ["job.failed"]

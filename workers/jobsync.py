@@ -167,6 +167,10 @@ def _write_if_changed(path: Path, data: bytes) -> None:
         _set_mtime(path, stable_mtime_ns(digest))
 
 
+class InputsChanged(RuntimeError):
+    """A job's images or POS differ from the snapshot it was created on."""
+
+
 def materialize(
     session: Session,
     storage: Storage,
@@ -183,7 +187,14 @@ def materialize(
     root = job_root(work_dir, job_row.id)
     inputs = root / INPUTS
     project = job_row.project
+    changed = crud.inputs_changed(session, job_row)
+    if changed:
+        raise InputsChanged(
+            f"job {job_row.id}: its inputs changed since it was created: {'; '.join(changed)}"
+        )
     images = crud.list_images(session, project.id)
+    if job_row.inputs:  # the images the job was created on, not those uploaded since
+        images = [im for im in images if im.name in job_row.inputs.get("images", {})]
     names = {im.name for im in images}
     todo = []
     for s in ("aerial", "ground"):

@@ -12,7 +12,8 @@ from typing import Literal
 from fastapi import APIRouter, HTTPException, status
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from api.deps import ProjectDep, StorageDep
+from api.deps import ProjectDep, SessionDep, StorageDep
+from shared.db import crud
 from shared.storage.keys import cameras_key
 
 router = APIRouter(prefix="/projects/{project_id}/cameras", tags=["cameras"])
@@ -22,7 +23,7 @@ PARAM_COUNTS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL":
 
 
 class CameraIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
     width: int = Field(gt=0, le=100_000)
@@ -49,8 +50,10 @@ class CamerasIn(BaseModel):
 
 
 @router.put("", response_model=CamerasIn, response_model_exclude_none=True)
-def put_cameras(body: CamerasIn, project: ProjectDep, storage: StorageDep) -> CamerasIn:
-    """Store (replace) the project's intrinsics. Unknown models, wrong parameter counts or sizes: 422."""
+def put_cameras(body: CamerasIn, project: ProjectDep, storage: StorageDep, session: SessionDep) -> CamerasIn:
+    """Store (replace) the project's intrinsics. Unknown models, wrong parameter counts or sizes: 422;
+    409 while a queued or running job uses them."""
+    crud.check_inputs_free(session, project.id)
     data = body.model_dump(exclude_none=True)
     if not data:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "give intrinsics for aerial and/or ground")

@@ -19,6 +19,7 @@ from api.ingest import (
     CheckedImage,
     declared_sha256,
     decode_check,
+    exif_meta,
     image_name,
     sanitize_filename,
     store_images,
@@ -103,7 +104,14 @@ def _check_files(files: list[ReceivedFile], image_set: str, sha256_fields: list[
             continue
         out.append(
             CheckedImage(
-                image_name(image_set, filename), rf.path, rf.sha256, rf.size, width, height, rf.filename
+                image_name(image_set, filename),
+                rf.path,
+                rf.sha256,
+                rf.size,
+                width,
+                height,
+                rf.filename,
+                exif_meta(rf.path),
             )
         )
     if errors:
@@ -220,8 +228,10 @@ def download_image(
 def delete_image(
     project: ProjectDep, session: SessionDep, storage: StorageDep, image_set: ImageSet, filename: str
 ) -> Response:
-    """Delete an image and its stored object (its POS row, if any, stays)."""
+    """Delete an image and its stored object (its POS row, if any, stays); 409 while a queued or running
+    job uses it."""
     image = _image(session, project, image_set, filename)
+    crud.check_inputs_free(session, project.id, image.name)  # 409 while a queued or running job uses it
     key = image.storage_key
     session.delete(image)
     session.commit()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 
 import sqlalchemy as sa
@@ -9,13 +10,15 @@ from fastapi import APIRouter, HTTPException, Request, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy.orm import Session
 
-from api.deps import DispatcherDep, JobDep, ProjectDep, SessionDep, SettingsDep
+from api.deps import DispatcherDep, JobDep, ProjectDep, SessionDep, SettingsDep, StorageDep
 from api.events import job_events
 from api.schemas import JobCreate, JobDetail, JobOut, JobRerun, OptionsOut, OptionSpec, StageRunOut
 from shared.db import crud
-from shared.db.models import Image, Job, JobStatus, PosRecordRow, Project
+from shared.db.models import Job, JobStatus, Project
 from shared.dispatch import Dispatcher
 from shared.job_options import JobOptions, option_specs
+from shared.storage import Storage, StorageKeyError
+from shared.storage.keys import cameras_key
 
 router = APIRouter(tags=["jobs"])
 log = logging.getLogger("midview.api")
@@ -57,33 +60,55 @@ def _count(session: Session, stmt: sa.Select) -> int:
     return int(session.scalar(stmt) or 0)
 
 
-def _check_inputs(session: Session, project: Project, options: JobOptions) -> None:
-    """409 unless the project has what the selected stages need."""
-    n_aerial = _count(
-        session,
-        sa.select(sa.func.count()).where(Image.project_id == project.id, Image.image_set == "aerial"),
-    )
-    if n_aerial == 0:
+MIN_AERIAL = 3  # georeferencing fits a similarity to at least three camera centres
+
+
+def _names(items: list[str], limit: int = 10) -> str:
+    return ", ".join(items[:limit]) + (f" and {len(items) - limit} more" if len(items) > limit else "")
+
+
+def _check_inputs(session: Session, storage: Storage, project: Project, options: JobOptions) -> None:
+    """409 unless the project has what the selected stages need: at least MIN_AERIAL aerial images,
+    ground images where the stages need them, a POS row for every image, and intrinsics for each set
+    (its cameras.json entry, else the EXIF focal length of every image of the set)."""
+    sets = ["aerial", "ground"] if options.needs_ground() else ["aerial"]
+    images = {s: crud.list_images(session, project.id, s) for s in sets}
+    if not images["aerial"]:
         raise HTTPException(status.HTTP_409_CONFLICT, "the project has no aerial images")
-    n_pos = _count(
-        session,
-        sa.select(sa.func.count())
-        .select_from(PosRecordRow)
-        .join(
-            Image, sa.and_(Image.project_id == PosRecordRow.project_id, Image.name == PosRecordRow.image_name)
+    if len(images["aerial"]) < MIN_AERIAL:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"the project has {len(images['aerial'])} aerial image(s): the aerial SfM and its georeference "
+            f"need at least {MIN_AERIAL}",
         )
-        .where(PosRecordRow.project_id == project.id, Image.image_set == "aerial"),
-    )
-    if n_pos == 0:
+    if "ground" in images and not images["ground"]:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, "the project has no ground images (needed by the selected stages)"
+        )
+    with_pos = {r.image_name for r in crud.list_pos_records(session, project.id)}
+    if not any(im.name in with_pos for im in images["aerial"]):
         raise HTTPException(status.HTTP_409_CONFLICT, "the project has no POS for its aerial images")
-    if options.needs_ground():
-        n_ground = _count(
-            session,
-            sa.select(sa.func.count()).where(Image.project_id == project.id, Image.image_set == "ground"),
+    missing = [im.name for s in sets for im in images[s] if im.name not in with_pos]
+    if missing:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, f"{len(missing)} image(s) have no POS row: {_names(missing)}"
         )
-        if n_ground == 0:
+    try:
+        cameras = json.loads(storage.get_bytes(cameras_key(project.tenant_id, project.id)))
+    except StorageKeyError:
+        cameras = {}
+    for s in sets:
+        if s in cameras:
+            continue
+        no_focal = [
+            im.name for im in images[s] if "exif_focal_px" in (im.meta or {}) and not im.meta["exif_focal_px"]
+        ]
+        if no_focal:
             raise HTTPException(
-                status.HTTP_409_CONFLICT, "the project has no ground images (needed by the selected stages)"
+                status.HTTP_409_CONFLICT,
+                f"no intrinsics for the {s} images: the project's cameras.json has no {s!r} entry and "
+                f"{len(no_focal)} of them have no EXIF focal length ({_names(no_focal)}); "
+                f"PUT /projects/{project.id}/cameras",
             )
 
 
@@ -109,16 +134,21 @@ def _submit(session: Session, dispatcher: Dispatcher, job: Job, from_stage: str 
     status_code=status.HTTP_201_CREATED,
     response_model=JobOut,
     responses={
-        409: {"description": "The project lacks aerial images, their POS, or ground images"},
+        409: {"description": "The project lacks aerial images, ground images, POS rows or intrinsics"},
         503: {"description": "The job could not be queued"},
     },
 )
 def create_job(
-    project: ProjectDep, session: SessionDep, dispatcher: DispatcherDep, body: JobCreate | None = None
+    project: ProjectDep,
+    session: SessionDep,
+    dispatcher: DispatcherDep,
+    storage: StorageDep,
+    body: JobCreate | None = None,
 ) -> JobOut:
-    """Queue a job on the project with the given options (defaults for the rest; no body: all defaults)."""
+    """Queue a job on the project with the given options (defaults for the rest; no body: all defaults),
+    on a snapshot of its inputs (images and POS: deleting or replacing them while it runs is 409)."""
     options = body.options if body is not None else JobOptions()
-    _check_inputs(session, project, options)
+    _check_inputs(session, storage, project, options)
     job = crud.create_job(session, project.id, options.model_dump(mode="json"))
     session.commit()
     _submit(session, dispatcher, job)
@@ -192,6 +222,12 @@ def rerun_job(
             JobOptions.model_validate(job.options or {}).stages_from(from_stage)
         except ValueError as e:  # pydantic's ValidationError included
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(e)) from None
+    changed = crud.inputs_changed(session, job)
+    if changed:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"the job's inputs changed since it was created ({'; '.join(changed[:10])}): create a new job",
+        )
     job = crud.rerun_job(session, job.id)  # by id: the row is locked and reloaded
     session.commit()
     _submit(session, dispatcher, job, from_stage)

@@ -29,7 +29,10 @@ def _unprocessable(message: str, errors: list[str]) -> HTTPException:
 @router.post(
     "",
     response_model=PosUploadResult,
-    responses={422: {"description": "Bad rows, or rows naming no uploaded image; nothing stored"}},
+    responses={
+        409: {"description": "A queued or running job uses the project's POS"},
+        422: {"description": "Bad rows, or rows naming no uploaded image; nothing stored"},
+    },
 )
 def upload_pos(
     project: ProjectDep,
@@ -44,6 +47,7 @@ def upload_pos(
     """Parse and validate a POS file against the project's images, then insert or replace its rows by
     image name. Bad rows, or rows naming no uploaded image, reject the whole file (422, one message per
     row) and leave the stored POS untouched; images without a row are only reported as warnings."""
+    crud.check_inputs_free(session, project.id)  # 409 while a queued or running job uses the POS
     data = file.file.read(settings.max_pos_bytes + 1)
     if len(data) > settings.max_pos_bytes:
         raise HTTPException(
@@ -116,6 +120,7 @@ def pos_from_exif(
     or has no position or no altitude of the kind asked for, rejects the request (422, one reason per
     image) and leaves the stored POS untouched; with `skip_without_gps` images without a position are
     skipped with a warning instead."""
+    crud.check_inputs_free(session, project.id)  # 409 while a queued or running job uses the POS
     images = _exif_images(session, project, body)
     session.commit()  # no database connection held while the images download
     options = {"altitude": body.altitude, "attitude": body.attitude, "takeoff_h": body.takeoff_h}

@@ -29,7 +29,7 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from api.deps import ProjectDep, SessionDep, SettingsDep, StorageDep
-from api.ingest import CONTENT_TYPES, check_image_name, decode_check, hash_stream
+from api.ingest import CONTENT_TYPES, check_image_name, decode_check, exif_meta, hash_stream
 from api.schemas import (
     ImageOut,
     PartOut,
@@ -277,8 +277,9 @@ async def upload_part(
     return PartOut(part_number=part_number, etag=etag)
 
 
-def _verify(storage: Storage, upload: Upload, tmp: Path) -> tuple[str, int, int, int]:
-    """(sha256, size, width, height) of the assembled object; ValueError/ImageError when it fails."""
+def _verify(storage: Storage, upload: Upload, tmp: Path) -> tuple[str, int, int, int, dict]:
+    """(sha256, size, width, height, exif_meta) of the assembled object; ValueError/ImageError when it
+    fails."""
     filename = upload.name.split("/", 1)[1]
     local = tmp / "image"
     with storage.open_read(upload.storage_key) as body:
@@ -288,7 +289,7 @@ def _verify(storage: Storage, upload: Upload, tmp: Path) -> tuple[str, int, int,
     if upload.sha256 is not None and sha256 != upload.sha256:
         raise ValueError(f"{filename}: sha256 {sha256} does not match the announced {upload.sha256}")
     width, height = decode_check(local, filename)
-    return sha256, size, width, height
+    return sha256, size, width, height, exif_meta(local)
 
 
 def _parts_to_complete(storage: Storage, upload: Upload, body: UploadComplete) -> list[tuple[int, str]]:
@@ -343,7 +344,7 @@ def complete_upload(
         ) from None
     with tempfile.TemporaryDirectory(prefix="midview-complete-", dir=settings.upload_tmp_dir) as tmp:
         try:
-            sha256, size, width, height = _verify(storage, upload, Path(tmp))
+            sha256, size, width, height, meta = _verify(storage, upload, Path(tmp))
         except (ValueError, ImageError) as e:
             storage.delete(upload.storage_key)
             _drop(session, storage, upload, abort=False)
@@ -362,7 +363,7 @@ def complete_upload(
             storage_key=upload.storage_key,
             width=width,
             height=height,
-            metadata={"upload_id": uid},
+            metadata={"upload_id": uid, **meta},
         )
         session.delete(upload)
         session.commit()

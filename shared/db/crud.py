@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import json
 import math
 import re
 import secrets
@@ -366,10 +367,72 @@ def uploads_in_progress(session: Session, project_id: str, names: Iterable[str])
 
 
 # jobs
-def create_job(session: Session, project_id: str, options: dict[str, Any] | None = None) -> Job:
-    """A queued job of the project."""
+ACTIVE_STATUSES = (JobStatus.queued, JobStatus.running)
+
+
+def pos_digest(session: Session, project_id: str) -> str:
+    """sha256 of the project's POS rows (name, position, attitude, stds), in name order."""
+    rows = [
+        [r.image_name, r.lat, r.lon, r.h, r.attitude, r.std_xy, r.std_z, r.std_att]
+        for r in sorted(list_pos_records(session, project_id), key=lambda r: r.image_name)
+    ]
+    return hashlib.sha256(json.dumps(rows, separators=(",", ":")).encode()).hexdigest()
+
+
+def input_snapshot(session: Session, project_id: str) -> dict[str, Any]:
+    """What a job is created on: its images (name -> sha256) and the POS rows' digest."""
+    images = {im.name: im.sha256 for im in list_images(session, project_id)}
+    return {"images": images, "pos_sha256": pos_digest(session, project_id)}
+
+
+def inputs_changed(session: Session, job: Job) -> list[str]:
+    """How the project's inputs differ from the job's snapshot (images gone or replaced, POS changed);
+    empty when they are the same (or the job has no snapshot)."""
+    snap = job.inputs or {}
+    if not snap:
+        return []
+    now = {im.name: im.sha256 for im in list_images(session, job.project_id)}
+    out = [f"image {n} was deleted" for n in sorted(snap.get("images", {})) if n not in now]
+    out += [
+        f"image {n} was replaced"
+        for n, sha in sorted(snap.get("images", {}).items())
+        if now.get(n, sha) != sha
+    ]
+    if snap.get("pos_sha256") and snap["pos_sha256"] != pos_digest(session, job.project_id):
+        out.append("the POS changed")
+    return out
+
+
+def active_jobs(session: Session, project_id: str) -> list[Job]:
+    """The project's queued and running jobs."""
+    stmt = sa.select(Job).where(Job.project_id == project_id, Job.status.in_(ACTIVE_STATUSES))
+    return list(session.scalars(stmt.order_by(Job.created_at)))
+
+
+def check_inputs_free(session: Session, project_id: str, image_name: str | None = None) -> None:
+    """ConflictError when a queued or running job uses the image (or, without a name, any input)."""
+    busy = [
+        j.id
+        for j in active_jobs(session, project_id)
+        if image_name is None or image_name in (j.inputs or {}).get("images", {image_name: None})
+    ]
+    if busy:
+        what = f"image {image_name}" if image_name else "the project's inputs"
+        raise ConflictError(
+            f"{what} in use by job(s) {', '.join(busy)} (queued or running): try when they end"
+        )
+
+
+def create_job(
+    session: Session,
+    project_id: str,
+    options: dict[str, Any] | None = None,
+    inputs: dict[str, Any] | None = None,
+) -> Job:
+    """A queued job of the project, on a snapshot of its inputs (input_snapshot, by default now's)."""
     project = _project(session, project_id)
-    return _add(session, Job(project_id=project.id, options=dict(options or {})), "job exists")
+    snap = input_snapshot(session, project.id) if inputs is None else inputs
+    return _add(session, Job(project_id=project.id, options=dict(options or {}), inputs=snap), "job exists")
 
 
 def get_job(session: Session, job_id: str, tenant_id: str | None = None) -> Job | None:

@@ -258,6 +258,8 @@ class Job(Base):
     options: Mapped[dict[str, Any]] = mapped_column(default=dict)
     timings: Mapped[dict[str, Any]] = mapped_column(default=dict)
     metrics: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    # what it was created on: {"images": {name: sha256}, "pos_sha256": ...} (crud.input_snapshot)
+    inputs: Mapped[dict[str, Any] | None]
     error: Mapped[str | None] = mapped_column(sa.Text)
     attempt: Mapped[int] = mapped_column(default=1)
     celery_root_id: Mapped[str | None] = mapped_column(sa.String(255))
