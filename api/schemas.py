@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import AnyHttpUrl, BaseModel, ConfigDict, Field
+from pydantic import AnyHttpUrl, BaseModel, ConfigDict, Field, field_validator
 
 from shared.job_options import JobOptions, Stage
 
@@ -31,6 +31,18 @@ class ProjectCreate(In):
     origin: tuple[float, float, float] | None = Field(
         None, description="Local frame origin (lat, lon, h); default: derived from the POS"
     )
+
+    @field_validator("origin")
+    @classmethod
+    def _origin_on_earth(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is not None:
+            lat, lon, h = v
+            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and -12_000.0 <= h <= 100_000.0):
+                raise ValueError(
+                    f"origin ({lat}, {lon}, {h}): latitude in [-90, 90], longitude in [-180, 180], "
+                    "height in [-12000, 100000] m"
+                )
+        return v
 
 
 class ProjectOut(Out):

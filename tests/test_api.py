@@ -688,7 +688,9 @@ def test_a_jobs_inputs_are_frozen_while_it_runs(api_env, make_jpeg) -> None:
     r = c.delete(f"/projects/{pid}/images/aerial/A2.jpg", headers=t.headers)
     assert r.status_code == 409 and jid in r.json()["detail"]
     pos = pos_csv(["aerial/A1.jpg", "aerial/A2.jpg", "aerial/A3.jpg", "ground/G1.jpg"], lat=56.0)
-    assert c.post(f"/projects/{pid}/pos", files={"file": ("p.csv", pos)}, headers=t.headers).status_code == 409
+    assert (
+        c.post(f"/projects/{pid}/pos", files={"file": ("p.csv", pos)}, headers=t.headers).status_code == 409
+    )
     cam = {"model": "PINHOLE", "width": 64, "height": 48, "params": [61.0, 61.0, 32.0, 24.0]}
     assert c.put(f"/projects/{pid}/cameras", json={"aerial": cam}, headers=t.headers).status_code == 409
     assert snapshot(api_env, t, pid) == before

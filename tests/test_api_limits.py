@@ -194,3 +194,12 @@ def test_api_answers_429_with_retry_after_per_key(tmp_path, request):
         assert r.status_code == 429 and int(r.headers["Retry-After"]) >= 1 and "rate limit" in r.text
         assert c.get("/projects", headers=b).status_code == 200  # another key has its own allowance
         assert c.get("/healthz").status_code == 200  # probes are not limited
+
+
+def test_a_project_origin_off_the_earth_is_422(limited):
+    c, h, _ = limited
+    for origin in ([999.0, 13.0, 70.0], [55.0, 181.0, 70.0], [55.0, 13.0, 1e7]):
+        r = c.post("/projects", json={"name": f"o{origin[0]}{origin[1]}", "origin": origin}, headers=h)
+        assert r.status_code == 422 and "latitude in [-90, 90]" in r.text, origin
+    ok = c.post("/projects", json={"name": "origin-ok", "origin": [55.7, 13.19, 70.0]}, headers=h)
+    assert ok.status_code == 201 and ok.json()["origin_lat"] == 55.7

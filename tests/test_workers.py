@@ -483,7 +483,9 @@ def test_celery_failure_fails_the_job_and_queues_the_webhook(service, tiny_surve
     assert r.status_code == 201, r.text
     pid = upload_survey(c, service.tenant, tiny_survey, service.app.state.storage)
     cam = {"model": "PINHOLE", "width": 640, "height": 480, "params": [500.0, 500.0, 320.0, 240.0]}
-    assert c.put(f"/projects/{pid}/cameras", json={"aerial": cam, "ground": cam}, headers=h).status_code == 200
+    assert (
+        c.put(f"/projects/{pid}/cameras", json={"aerial": cam, "ground": cam}, headers=h).status_code == 200
+    )
     job_id = c.post(f"/projects/{pid}/jobs", json={"options": {"stages": ["aerial_sfm"]}}, headers=h).json()[
         "id"
     ]
