@@ -27,6 +27,7 @@ def job_snapshot(job: Job) -> dict[str, Any]:
         "error": job.error,
         "timings": job.timings or {},
         "metrics": job.metrics or {},
+        "outcome": (job.metrics or {}).get("outcome"),
         "started_at": job.started_at.isoformat() if job.started_at else None,
         "finished_at": job.finished_at.isoformat() if job.finished_at else None,
     }
@@ -65,7 +66,8 @@ async def job_events(
             yield format_event("progress", snap, n)
             last, last_sent = snap, time.monotonic()
             if snap["status"] in {s.value for s in TERMINAL_JOB_STATUSES}:
-                yield format_event("end", {"id": job_id, "status": snap["status"]}, n + 1)
+                end = {"id": job_id, "status": snap["status"], "outcome": snap["outcome"]}
+                yield format_event("end", end, n + 1)
                 return
         elif time.monotonic() - last_sent >= heartbeat_s:
             yield ": keep-alive\n\n"

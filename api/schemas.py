@@ -222,6 +222,11 @@ class JobOut(Out):
     options: dict[str, Any]
     timings: dict[str, Any]
     metrics: dict[str, Any]
+    outcome: dict[str, Any] | None = Field(
+        None,
+        description="A succeeded job's registered images per set, result ok or warnings, and the warnings "
+        "(ground images not registered ...)",
+    )
     error: str | None
     attempt: int
     created_at: datetime

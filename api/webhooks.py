@@ -100,6 +100,7 @@ def job_payload(job: Job) -> dict[str, Any]:
             "attempt": job.attempt,
             "error": job.error,
             "metrics": job.metrics or {},
+            "outcome": (job.metrics or {}).get("outcome"),
             "timings": job.timings or {},
             "finished_at": job.finished_at.isoformat() if job.finished_at else None,
         }

@@ -612,7 +612,8 @@ def _combined_sfm(job: Job, report) -> dict:
     _set_threads(job)
     combined_reconstruction(job, job.dir("combined"), report)
     rep = json.loads((job.dir("combined") / "report.json").read_text())
-    return {"NRI": rep["NRI"], "num_points3D": rep["num_points3D"]}
+    keys = ("NRI", "num_registered", "num_images", "num_points3D")
+    return {k: rep[k] for k in keys if k in rep}
 
 
 def _set_threads(job: Job) -> None:

@@ -84,7 +84,7 @@ def test_event_stream_follows_the_job_to_its_end(api_env, make_jpeg) -> None:
     assert seen == steps  # every change, in order, once
     assert progress[-1]["status"] == "succeeded" and progress[-1]["progress_percent"] == 100.0
     assert progress[-1]["metrics"] == {"pairs": 3}
-    assert events[-1] == ("end", {"id": jid, "status": "succeeded"})
+    assert events[-1] == ("end", {"id": jid, "status": "succeeded", "outcome": None})
 
     # a finished job: its state, then the end, at once
     with api_env.client.stream("GET", f"/jobs/{jid}/events", headers=t.headers) as r:

@@ -235,7 +235,11 @@ def test_job_succeeds_with_every_stage(service, first_run):
     assert job["status"] == "succeeded", (job, service.worker.text()[-5000:])
     assert [st["stage"] for st in job["stages"]] == list(STAGES)
     assert all(st["status"] == "succeeded" for st in job["stages"]), job["stages"]
-    assert set(job["metrics"]) == set(STAGES) and set(job["timings"]) == set(STAGES)
+    assert set(job["metrics"]) == {*STAGES, "outcome"} and set(job["timings"]) == set(STAGES)
+    out = job["outcome"]  # what the user got, from the combined reconstruction
+    assert out == job["metrics"]["outcome"] and out["from_stage"] == "combined_sfm"
+    assert out["registered"] == job["metrics"]["combined_sfm"]["num_registered"]
+    assert out["result"] == ("ok" if out["registered"] == out["images"] else "warnings")
     assert job["progress"] == 1.0
     stages_seen = [st for _, st, _ in first_run.seen if st]
     assert stages_seen and stages_seen[-1] == "combined_sfm"

@@ -41,6 +41,7 @@ from shared.db import crud
 from shared.db.models import TERMINAL_JOB_STATUSES, JobStatus, StageRun, StageStatus, utcnow
 from shared.db.session import get_engine, session_scope
 from shared.job_options import STAGES, JobOptions
+from shared.outcome import job_outcome
 from shared.storage import Storage, StorageKeyError, get_storage
 from workers import jobsync
 
@@ -512,7 +513,8 @@ def _json_safe(value: Any) -> Any:
 
 
 def finalize(job_id: str, *, settings: Any) -> dict:
-    """The job succeeded: metrics = every stage's marker summary (read from storage); webhook event.
+    """The job succeeded: metrics = every stage's marker summary (read from storage) and the outcome
+    (shared.outcome: registered images per set, warnings); webhook event.
     Idempotent (a job already succeeded is left as it is)."""
     from api.webhooks import enqueue_job_event
 
@@ -529,11 +531,14 @@ def finalize(job_id: str, *, settings: Any) -> dict:
         except StorageKeyError:
             raise RuntimeError(f"stage {stage} has no marker in storage: it did not finish") from None
         metrics[stage] = _json_safe(marker.get("summary") or {})
+    metrics["outcome"] = job_outcome(metrics)
     with ctx.session() as s:
         row = _live_row(s, job_id)
         crud.update_job_results(s, row, metrics=metrics)
         crud.set_job_status(s, row, JobStatus.succeeded)
         enqueue_job_event(s, row)
+    if metrics["outcome"]["warnings"]:
+        log.warning("job %s succeeded with warnings: %s", job_id, "; ".join(metrics["outcome"]["warnings"]))
     log.info("job %s succeeded: %s", job_id, metrics)
     return metrics
 

@@ -35,6 +35,7 @@ def job_out(job: Job) -> JobOut:
         options=job.options or {},
         timings=job.timings or {},
         metrics=job.metrics or {},
+        outcome=(job.metrics or {}).get("outcome"),
         error=job.error,
         attempt=job.attempt,
         created_at=job.created_at,
