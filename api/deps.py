@@ -32,9 +32,19 @@ def get_settings(request: Request) -> ApiSettings:
     return request.app.state.settings
 
 
+READ_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
+
 def get_db(request: Request) -> Iterator[Session]:
-    """One session per request; routes commit what they keep, anything else is rolled back."""
-    with request.app.state.sessionmaker() as session:
+    """One session per request; routes commit what they keep, anything else is rolled back.
+
+    On SQLite a request that may write (not GET, HEAD, OPTIONS) begins its transactions with BEGIN
+    IMMEDIATE: it takes the write lock with its first statement and waits for it (busy_timeout). A
+    deferred transaction that read (the API key) before writing could not take the lock once another
+    connection (the embedded worker) had committed since: "database is locked" at once."""
+    state = request.app.state
+    maker = state.sessionmaker if request.method in READ_METHODS else state.write_sessionmaker
+    with maker() as session:
         yield session
 
 

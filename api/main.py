@@ -84,6 +84,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = make_engine(settings.database_url)
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
+    # sessions of requests that write: BEGIN IMMEDIATE on SQLite (api.deps.get_db), plain elsewhere
+    app.state.write_sessionmaker = make_sessionmaker(
+        app.state.engine.execution_options(sqlite_immediate=True)
+    )
     app.state.storage = get_storage(settings)
     app.state.dispatcher = None  # created on first use (api.deps.get_dispatcher)
     app.state.rate_limiter = make_rate_limiter(settings)
