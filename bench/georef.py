@@ -3,7 +3,7 @@ fitted to the camera centres alone) and after (the joint fit of centres, POS att
 orientation prior, each weighted by its noise), against the truth.
 
     python bench/georef.py                  # the synthetic small preset, work folder runs/bench-georef
-    python bench/georef.py --preset small-walk --scene runs/small-walk
+    python bench/georef.py --preset small-walk --scene runs/small-walk --sfm runs/bench/.../base/sfm
     python bench/georef.py --json docs/results/georef-tilt.json
 
 Two parts, both measured in the same run:
@@ -154,6 +154,7 @@ def bench(
     preset: str = typer.Option("small", help="synthetic preset (flown at one altitude)"),
     scene: Path = typer.Option(None, help="an already rendered scene folder (default: render one)"),
     work: Path = typer.Option(Path("runs/bench-georef"), help="work folder"),
+    sfm: Path = typer.Option(None, help="an aerial SfM output of the scene to use (default: run one)"),
     trials: int = typer.Option(100, help="simulated flights"),
     json_out: Path = typer.Option(None, "--json", help="also write the figures here"),
 ) -> None:
@@ -174,7 +175,7 @@ def bench(
     scene = scene or work / f"synth-{preset}"
     if not (scene / "gt" / "sparse").is_dir():
         synth_main(synth_confs[preset], scene, seed=0, overwrite=True)
-    sfm_dir = work / f"sfm-{scene.name}"
+    sfm_dir = sfm or work / f"sfm-{scene.name}"
     if not (sfm_dir / "georef.json").is_file():
         sfm_main(
             sfm_confs["sift"],

@@ -184,10 +184,25 @@ def choose_prior(R_rec: list[np.ndarray] | None, n_attitudes: int, conf: dict, s
     return "vertical" if float(np.median(spread)) < conf["nadir_spread_deg"] else "no_roll"
 
 
+def stations(src: np.ndarray, rel_tol: float = 1e-3) -> np.ndarray:
+    """(N,) index of the station of each camera: cameras of one rig exposure (a multi-head oblique
+    camera) share a centre, within rel_tol of the flight's extent, and count once for the "level"
+    prior (five heads at one station are one altitude sample, not five)."""
+    P = np.asarray(src, float)
+    tol = rel_tol * max(float(np.linalg.norm(P.std(0))), 1e-12)
+    ids = -np.ones(len(P), int)
+    for i in range(len(P)):
+        if ids[i] < 0:
+            ids[(ids < 0) & (np.linalg.norm(P - P[i], axis=1) <= tol)] = ids.max() + 1
+    return ids
+
+
 def level_std(src: np.ndarray, floor: float) -> float:
-    """The centres' std off their best plane (reconstruction units), at least `floor`."""
-    sv = np.linalg.svd(np.asarray(src, float) - np.mean(src, 0), compute_uv=False)
-    return max(float(sv[2]) / np.sqrt(len(src)), floor)
+    """The stations' std off their best plane (reconstruction units), at least `floor`."""
+    ids = stations(src)
+    P = np.array([np.asarray(src, float)[ids == k].mean(0) for k in range(ids.max() + 1)])
+    sv = np.linalg.svd(P - P.mean(0), compute_uv=False) if len(P) >= 3 else np.zeros(3)
+    return max(float(sv[2]) / np.sqrt(max(len(P), 1)), floor)
 
 
 def _prior_axes(kind: str) -> list[int]:
@@ -228,7 +243,8 @@ class JointTerms:
     axes: list[int]  # camera axes the prior holds horizontal
     sig_prior: np.ndarray  # (len(axes),) degrees
     height_trend: bool  # a plane in the POS heights is free (their tilt says nothing of the model's)
-    sig_level: float | None = None  # "level" prior: the centres' std off a horizontal plane (rec units)
+    sig_level: float | None = None  # "level" prior: the stations' std off a horizontal plane (rec units)
+    level_weight: np.ndarray | float = 1.0  # (N,) 1 / sqrt(cameras at the image's station)
 
     def parts(self, x: np.ndarray, s0: float, R0: np.ndarray) -> tuple:
         """Position (N, 3), attitude (P, 3) and prior (N, len(axes)) residuals of parameters x."""
@@ -243,7 +259,7 @@ class JointTerms:
         ).reshape(-1, 3)
         n = len(self.src)
         r_pri = np.array([[(R @ self.R_rec[i][:, k])[2] for k in self.axes] for i in range(n)])
-        r_lvl = (A @ R.T)[:, 2] if self.sig_level else np.zeros(0)
+        r_lvl = (A @ R.T)[:, 2] * self.level_weight if self.sig_level else np.zeros(0)
         return r_pos, r_att, r_pri.reshape(n, len(self.axes)), r_lvl
 
     def residuals(self, x: np.ndarray, s0: float, R0: np.ndarray) -> np.ndarray:
@@ -319,6 +335,9 @@ def refine_joint(
         height_trend,
         level_std(src, conf["min_level_std_m"] / max(s0, 1e-12)) if prior == "level" else None,
     )  # fmt: skip
+    if prior == "level":
+        ids = stations(src)
+        terms.level_weight = 1.0 / np.sqrt(np.bincount(ids)[ids])
     est_pos = n >= conf["min_noise_images"] and not pos_stated.all()
     est_att = len(pairs) >= conf["min_noise_images"] and not att_stated[pairs].all()
     x = np.r_[np.zeros(3), 0.0, s0 * R0 @ src.mean(0) + t0, np.zeros(2 if height_trend else 0)]
