@@ -54,7 +54,7 @@ class Settings(BaseSettings):
         5, ge=0, description="Retries of a task after a transient error (storage, database, broker)"
     )
     heartbeat_timeout_s: float = Field(
-        120.0,
+        45.0,
         gt=0,
         description="A running stage whose heartbeat is older than this and whose Celery node does not "
         "answer a ping is re-dispatched (its node died)",

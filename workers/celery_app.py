@@ -30,7 +30,9 @@ QUEUES = ("gpu", "cpu", "reduce")
 DEFAULT_QUEUE = "reduce"
 # a message not acknowledged within this time is delivered again (Redis transport): longer than any task
 VISIBILITY_TIMEOUT_S = 6 * 3600
-RECONCILE_EVERY_S = 60.0
+# with heartbeats every 20 s (workers/tasks.py) and heartbeat_timeout_s 45 s, a stage whose node died or
+# whose message the broker lost is dispatched again within about a minute
+RECONCILE_EVERY_S = 15.0
 WEBHOOKS_EVERY_S = 15.0
 
 # task names (stable: messages in the broker refer to them)
