@@ -209,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--adopt-sfm", type=Path, help="an aerial SfM output folder to use instead of running it")
     ap.add_argument("--adopt-splat", type=Path, help="a 3DGS training folder (trained on --adopt-sfm) to use")
     ap.add_argument("--out", type=Path, help="output folder (default: runs/bench/method-<preset>-seed<seed>)")
+    ap.add_argument(
+        "--json", type=Path, help="also write the figures here (docs/results/method-<preset>.json)"
+    )
     args = ap.parse_args(argv)
     setup_logging("INFO")
     from rich.console import Console
@@ -353,7 +356,11 @@ def main(argv: list[str] | None = None) -> int:
         "PnP err max",
         "NRI aerial",
         "NRI ground",
-        "ground pos err mean",
+        "within 0.5 m",
+        "ground abs err med",
+        "p90",
+        "max",
+        "aerial-aligned med",
         "max",
         "N3P",
     ):
@@ -368,15 +375,20 @@ def main(argv: list[str] | None = None) -> int:
             ev = evaluate_sfm(scene, job.dir("combined") / "sparse", out / "eval" / f"sfm-{job.root.name}")
             ps = ev["per_set"]
             row["sfm"] = ev
+            ab, aa = ps["ground"]["absolute_error"], ps["ground"]["aerial_aligned_error"]
             cells += [
                 f"{ps['aerial']['num_registered']}/{ps['aerial']['num_gt']}",
                 f"{ps['ground']['num_registered']}/{ps['ground']['num_gt']}",
-                _f(ps["ground"]["position_error"]["mean"]),
-                _f(ps["ground"]["position_error"]["max"]),
+                str(within(ev)),
+                _f(ab["median"]),
+                _f(ab["p90"]),
+                _f(ab["max"]),
+                _f(aa["median"]),
+                _f(aa["max"]),
                 str(ev["num_points3D"]),
             ]
         else:
-            cells += ["-"] * 5
+            cells += ["-"] * 9
         table.add_row(*cells)
         sfm_rows[label] = row
     console.print(table)
@@ -405,7 +417,79 @@ def main(argv: list[str] | None = None) -> int:
         )
     )
     console.print(f"report: {out / 'method.json'}")
+    if args.json:
+        doc = results_doc(rows, sfm_rows, timings, argv)
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=1))
+        console.print(f"figures: {args.json}")
     return 0
+
+
+def within(ev: dict, metres: float = 0.5) -> int:
+    """Ground images of an evaluate_sfm summary within `metres` of the truth in absolute terms."""
+    if not ev.get("georef"):
+        return 0
+    return sum(r["set"] == "ground" and r.get("absolute_error", np.inf) <= metres for r in ev["per_image"])
+
+
+def method_key(label: str) -> tuple[str, str | None]:
+    """The figures' name of a row ("midview splat both" -> ("midview", "both")), planner or None."""
+    if label.startswith("midview"):
+        parts = label.split()
+        return ("perfect-views" if parts[1] == "gt" else "midview") + "".join(
+            f"-{x}" for x in parts[3:]
+        ), parts[2]
+    if label.startswith("direct SIFT"):
+        return "direct-sift", None
+    if label.startswith("direct ALIKED+LightGlue (2048"):
+        return "direct-aliked-lightglue-2048", None
+    return "direct-aliked-lightglue", None
+
+
+def results_doc(rows: list[dict], sfm_rows: dict, timings: dict, argv: list[str] | None) -> dict:
+    """docs/results/method-<preset>.json: the command, the commit and, per method, the figures."""
+    import subprocess
+
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+    figures: dict[str, dict] = {}
+    for s in rows:
+        key, planner = method_key(s["method"])
+        f = {
+            "gt_correct": s["total_gt_correct"],
+            "pooled_precision": s["pooled_precision"],
+            "nmp": s["nmp"],
+            "num_pairs": s["num_pairs"],
+        }
+        if planner is not None:
+            config = s["method"].split(" ", 1)[1]
+            ev = sfm_rows.get(config, {}).get("sfm")
+            f["planner"] = planner
+            f["seconds"] = timings.get(config.replace(" ", "-", 1))
+            if ev:
+                g = ev["per_set"]["ground"]
+                f.update(
+                    ground_total=g["num_gt"],
+                    ground_registered=g["num_registered"],
+                    ground_within_0_5m=within(ev),
+                    ground_abs_error_m={k: g["absolute_error"][k] for k in ("median", "p90", "max")},
+                    ground_aerial_aligned_error_m={
+                        k: g["aerial_aligned_error"][k] for k in ("median", "p90", "max")
+                    },
+                    aerial_abs_error_m={
+                        k: ev["per_set"]["aerial"]["absolute_error"][k] for k in ("median", "p90", "max")
+                    },
+                )
+            # "midview" / "perfect-views": the "both" planner's (else the first run); each also by planner
+            if key not in figures or planner == "both":
+                figures[key] = f
+            key = f"{key}-{planner}"
+        figures[key] = f
+    return {
+        "command": "python bench/method.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "commit": commit.strip(),
+        "figures": figures,
+        "timings_s": timings,
+    }
 
 
 def config_name(renderer: str, planner: str, matcher: str) -> str:
