@@ -180,8 +180,8 @@ def webhook_rotate(
     as_json: bool = JsonOption,
 ) -> None:
     """Give a webhook a new signing secret (printed once); deliveries are signed with it from now on."""
-    from api.webhooks import new_secret
     from shared.db.models import Webhook
+    from shared.webhooks import new_secret
 
     with _session(database_url) as s:
         hook = s.get(Webhook, webhook_id)

@@ -13,15 +13,15 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 import sqlalchemy as sa
 
-from api.webhooks import (
+from shared.db import crud
+from shared.db.models import DeliveryStatus, JobStatus, WebhookDelivery, utcnow
+from shared.webhooks import (
     SIGNATURE_HEADER,
     TIMESTAMP_HEADER,
     deliver_due,
     enqueue_job_event,
     verify_signature,
 )
-from shared.db import crud
-from shared.db.models import DeliveryStatus, JobStatus, WebhookDelivery, utcnow
 
 
 @pytest.fixture(autouse=True)
@@ -271,8 +271,8 @@ def test_delivery_to_a_name_resolving_to_loopback_is_refused_before_connecting(a
     """A webhook on a host name passes registration; at delivery its address is loopback: refused, the
     receiver gets nothing. With the operator's allow-list the same delivery goes to the checked address
     (Host header kept); a redirect is not followed and the receiver's body is never recorded."""
-    from api.webhooks import deliver
     from shared import netguard
+    from shared.webhooks import deliver
 
     receiver = Receiver([302, 500], reply=b"internal secret: db password hunter2")
     try:

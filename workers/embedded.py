@@ -185,8 +185,8 @@ class EmbeddedDispatcher:
             return []
 
     def deliver_webhooks(self) -> int:
-        from api.webhooks import deliver_due
         from shared.netguard import parse_networks
+        from shared.webhooks import deliver_due
 
         try:
             with execute.get_context(self.settings).session() as s:

@@ -516,7 +516,7 @@ def finalize(job_id: str, *, settings: Any) -> dict:
     """The job succeeded: metrics = every stage's marker summary (read from storage) and the outcome
     (shared.outcome: registered images per set, warnings); webhook event.
     Idempotent (a job already succeeded is left as it is)."""
-    from api.webhooks import enqueue_job_event
+    from shared.webhooks import enqueue_job_event
 
     ctx = get_context(settings)
     with ctx.session() as s:
@@ -546,7 +546,7 @@ def finalize(job_id: str, *, settings: Any) -> dict:
 def fail(job_id: str, stage: str | None, error: BaseException | str, *, settings: Any) -> None:
     """The job failed: its running stage runs and the job get the error text; webhook event. A job that
     has finished already (e.g. cancelled) is left as it is."""
-    from api.webhooks import enqueue_job_event
+    from shared.webhooks import enqueue_job_event
 
     text = error if isinstance(error, str) else error_text(stage, error)
     ctx = get_context(settings)

@@ -270,8 +270,8 @@ def reconcile() -> list[dict]:
 @app.task(name=DELIVER_WEBHOOKS)
 def deliver_webhooks() -> int:
     """Send the webhook deliveries that are due."""
-    from api.webhooks import deliver_due
     from shared.db.session import get_engine, session_scope
+    from shared.webhooks import deliver_due
 
     with session_scope(get_engine(get_settings().database_url)) as session:
         return deliver_due(session)

@@ -1,4 +1,4 @@
-"""Webhooks of the tenant: job.succeeded / job.failed events POSTed signed (see api/webhooks.py)."""
+"""Webhooks of the tenant: job.succeeded / job.failed events POSTed signed (see shared/webhooks.py)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from sqlalchemy.orm import Session
 
 from api.deps import SessionDep, SettingsDep, TenantDep
 from api.schemas import DeliveryOut, WebhookCreate, WebhookCreated, WebhookOut
-from api.webhooks import new_secret
 from shared import netguard
 from shared.db.models import Webhook, WebhookDelivery
+from shared.webhooks import new_secret
 
 router = APIRouter(prefix="/webhooks", tags=["webhooks"])
 
