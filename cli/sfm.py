@@ -138,6 +138,17 @@ def print_summary(out: Path) -> dict:
         f"NRI {report['NRI']}, N3P {report['num_points3D']}, reprojection error "
         f"{report['mean_reprojection_error_px']:.2f} px, {georef} ({report['georef']['status']})"
     )
+    unc, lv = report["georef"].get("uncertainty") or {}, report["georef"].get("levels") or {}
+    if unc:
+        typer.echo(
+            f"georeference: {report['georef'].get('method')}; 1-sigma tilt {unc['tilt_deg']:.2f} deg, "
+            f"heading {unc['heading_deg']:.2f} deg, scale {100 * unc['scale_rel']:.2f}%"
+            + (
+                f"; flight plane {lv['flight_plane_tilt_deg']:.2f} deg from the vertical"
+                if lv.get("flight_plane_tilt_deg") is not None
+                else ""
+            )
+        )
     for u in report["unregistered"]:
         typer.echo(f"  not registered: {u['name']}: {u['reason']}")
     return report

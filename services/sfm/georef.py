@@ -64,6 +64,7 @@ default_conf = {
     # the POS heights' tilt against the attitudes' or prior's, in that tilt's stds, above which the
     # heights are taken as tilted (systematic) and the tilt comes from the attitudes or prior alone
     "height_trend_sigmas": 4.0,
+    "max_tilt_std_deg": 1.0,  # status "suspect" when the fit's 1-sigma tilt is above this
 }
 
 
@@ -570,6 +571,14 @@ def status(geo: Georef, conf: dict | None = None) -> tuple[str, list[str]]:
     att = list(geo.attitude_deg.values())
     if att and float(np.median(att)) > conf["attitude_inlier_deg"]:
         reasons.append(f"camera attitudes are {np.median(att):.1f} degrees off the POS (median)")
+    unc = geo.uncertainty or {}
+    if unc.get("tilt_deg") is not None and unc["tilt_deg"] > conf["max_tilt_std_deg"]:
+        noise = geo.noise or {}
+        reasons.append(
+            f"the model's tilt is uncertain by {unc['tilt_deg']:.1f} degrees (1 sigma; POS noise "
+            f"{noise.get('horizontal_m', float('nan')):.1f} m horizontal, "
+            f"{noise.get('vertical_m', float('nan')):.1f} m vertical)"
+        )
     if "ill-conditioned" in geo.method:
         reasons.append(
             "camera centres close to a line and no POS attitude: the rotation about it is uncertain by "
