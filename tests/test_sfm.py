@@ -139,6 +139,22 @@ def test_georef_joint_fit_estimates_unstated_noise_and_uses_an_orientation_prior
     assert np.degrees(np.arccos(up0[2])) > 5  # the heights tilt a fit on the centres alone
 
 
+def test_georef_joint_fit_takes_the_heading_from_the_centres_when_the_compass_is_biased():
+    """Attitudes whose headings share a 3 degree offset (a consumer drone's compass): the fit frees that
+    offset, and the heading comes from the centres; the tilt still from the attitudes."""
+    names, src, tgt, R_rec, R_pos, (s, R, t) = _level_flight(5, 60)
+    bias = _rot([0.0, 0.0, np.radians(3.0)])
+    R_biased = [bias @ Rp for Rp in R_pos]
+    n = len(names)
+    std = np.tile([0.5, 0.5, 0.8], (n, 1))
+    geo = estimate(names, src, tgt, 0.5, R_rec, R_biased, pos_std=std, att_std_deg=np.full(n, 1.0))
+    yaw = geo.noise["attitude_yaw"]
+    assert yaw["biased"] and yaw["bias_deg"] == pytest.approx(3.0, abs=0.5), yaw
+    assert "headings" in geo.method and _angle_deg(geo.R.T @ R) < 0.4
+    unbiased = estimate(names, src, tgt, 0.5, R_rec, R_pos, pos_std=std, att_std_deg=np.full(n, 1.0))
+    assert not unbiased.noise["attitude_yaw"]["biased"]
+
+
 # -- footprints and GeoJSON --------------------------------------------------------------------
 def _nadir_reconstruction() -> pycolmap.Reconstruction:
     rec = pycolmap.Reconstruction()

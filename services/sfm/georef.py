@@ -244,6 +244,7 @@ class JointTerms:
     axes: list[int]  # camera axes the prior holds horizontal
     sig_prior: np.ndarray  # (len(axes),) degrees
     height_trend: bool  # a plane in the POS heights is free (their tilt says nothing of the model's)
+    yaw_bias: bool = False  # a heading offset common to the POS attitudes is free (a compass's bias)
     sig_level: float | None = None  # "level" prior: the stations' std off a horizontal plane (rec units)
     level_weight: np.ndarray | float = 1.0  # (N,) 1 / sqrt(cameras at the image's station)
 
@@ -255,8 +256,9 @@ class JointTerms:
         if self.height_trend:
             d = self.tgt[:, :2] - self.tgt[:, :2].mean(0)
             r_pos[:, 2] -= d @ x[7:9]
+        Ra = Rotation.from_rotvec([0.0, 0.0, x[-1]]).as_matrix() @ R if self.yaw_bias else R
         r_att = np.array(
-            [Rotation.from_matrix(self.R_pos[i].T @ R @ self.R_rec[i]).as_rotvec() for i in self.pairs]
+            [Rotation.from_matrix(self.R_pos[i].T @ Ra @ self.R_rec[i]).as_rotvec() for i in self.pairs]
         ).reshape(-1, 3)
         n = len(self.src)
         r_pri = np.array([[(R @ self.R_rec[i][:, k])[2] for k in self.axes] for i in range(n)])
@@ -306,6 +308,7 @@ def refine_joint(
     conf: dict | None = None,
     default_std: float = 1.0,
     height_trend: bool = False,
+    yaw_bias: bool = False,
 ) -> tuple[float, np.ndarray, np.ndarray, dict, dict]:
     """Weighted least squares of a similarity over centres, attitudes and an orientation prior.
 
@@ -314,7 +317,9 @@ def refine_joint(
     residuals, pooled over the images: east and north together, up alone; `default_std` where too few
     images); att_std_deg: (N,) likewise for the attitudes. `height_trend`: the POS heights may hold a
     plane of their own (a drifting barometer or GNSS height), so only the attitudes or the prior fix
-    the tilt. Returns scale, R, t, the noise used and the fit's 1-sigma uncertainty.
+    the tilt. `yaw_bias`: the POS attitudes may share a heading offset (a consumer drone's compass), so
+    only the centres fix the heading. Returns scale, R, t, the noise used and the fit's 1-sigma
+    uncertainty.
     """
     conf = {**default_conf, **(conf or {})}
     src, tgt = np.asarray(src, float), np.asarray(tgt, float)
@@ -334,6 +339,7 @@ def refine_joint(
         np.where(att_stated, att_std, 1.0), _prior_axes(prior),
         prior_spread_deg(R_rec, prior, conf["min_prior_std_deg"]) if R_rec is not None else np.zeros(0),
         height_trend,
+        yaw_bias and bool(pairs),
         level_std(src, conf["min_level_std_m"] / max(s0, 1e-12)) if prior == "level" else None,
     )  # fmt: skip
     if prior == "level":
@@ -341,7 +347,10 @@ def refine_joint(
         terms.level_weight = 1.0 / np.sqrt(np.bincount(ids)[ids])
     est_pos = n >= conf["min_noise_images"] and not pos_stated.all()
     est_att = len(pairs) >= conf["min_noise_images"] and not att_stated[pairs].all()
-    x = np.r_[np.zeros(3), 0.0, s0 * R0 @ src.mean(0) + t0, np.zeros(2 if height_trend else 0)]
+    x = np.r_[
+        np.zeros(3), 0.0, s0 * R0 @ src.mean(0) + t0, np.zeros(2 if height_trend else 0),
+        np.zeros(1 if terms.yaw_bias else 0),
+    ]  # fmt: skip
     fit = {"loss": "huber", "f_scale": conf["robust_sigmas"], "args": (s0, R0)}
     for _ in range(max(1, conf["noise_iterations"])):
         x = least_squares(terms.residuals, x, **fit).x
@@ -367,6 +376,7 @@ def refine_joint(
         "prior_deg": [float(v) for v in terms.sig_prior] if terms.axes else None,
         "level_std_m": s * terms.sig_level if terms.sig_level else None,
         "height_trend_deg": ([float(np.degrees(np.arctan(v))) for v in sol.x[7:9]] if height_trend else None),
+        "attitude_yaw_bias_deg": float(np.degrees(sol.x[-1])) if terms.yaw_bias else None,
     }
     return s, R, t, noise, _uncertainty(sol)
 
@@ -387,7 +397,9 @@ def joint_fit(
     same with a free plane in the POS heights. When the two tilts differ by more than
     conf["height_trend_sigmas"] times the second's std, the heights are tilted against the attitudes
     or camera axes (a systematic GNSS or barometer error, which no per-image noise describes): the
-    second fit is kept, and noise["height_trend"] says so."""
+    second fit is kept, and noise["height_trend"] says so. Likewise the heading: with a heading offset
+    common to the attitudes left free, a heading that moves by more than that many of its stds means
+    the attitudes' headings are biased (a compass): that fit is kept (noise["attitude_yaw"])."""
     args = (src, tgt, init, pos_std, R_rec, R_pos, att_std_deg, conf, default_std)
     full = refine_joint(*args)
     noise = full[3]
@@ -396,13 +408,29 @@ def joint_fit(
     free = refine_joint(*args, height_trend=True)
     delta = _up_angle_deg(full[1], free[1])
     bound = conf["height_trend_sigmas"] * max(free[4]["tilt_deg"], 1e-6)
-    chosen = free if delta > bound else full
-    chosen[3]["height_trend"] = {
+    tilted = delta > bound
+    chosen = free if tilted else full
+    trend = {
         "tilt_difference_deg": delta,
         "bound_deg": bound,
-        "heights_tilted": bool(delta > bound),
+        "heights_tilted": bool(tilted),
         "trend_deg": free[3]["height_trend_deg"],
     }
+    yaw = None
+    if noise["attitudes_used"] >= 3 and not condition(tgt)["collinear"]:
+        loose = refine_joint(*args, height_trend=tilted, yaw_bias=True)
+        diff = abs(float(np.degrees(Rotation.from_matrix(loose[1] @ chosen[1].T).as_rotvec()[2])))
+        ybound = conf["height_trend_sigmas"] * max(loose[4]["heading_deg"], 1e-6)
+        yaw = {
+            "heading_difference_deg": diff,
+            "bound_deg": ybound,
+            "biased": bool(diff > ybound),
+            "bias_deg": loose[3]["attitude_yaw_bias_deg"],
+        }
+        if diff > ybound:
+            chosen = loose
+    chosen[3]["height_trend"] = trend
+    chosen[3]["attitude_yaw"] = yaw
     return chosen
 
 
@@ -464,6 +492,9 @@ def estimate(
             terms.append(f"{noise['attitudes_used']} attitudes")
         if noise["orientation_prior"] != "none":
             terms.append(f"{noise['orientation_prior']} prior")
+        if (noise.get("attitude_yaw") or {}).get("biased"):
+            bias = noise["attitude_yaw"]["bias_deg"]
+            terms.append(f"attitude headings {bias:+.1f} degrees off: heading from the centres")
         if noise.get("height_trend", {}).get("heights_tilted"):
             terms.append(
                 f"POS heights tilted {noise['height_trend']['tilt_difference_deg']:.1f} degrees against "
