@@ -93,6 +93,8 @@ default_conf: dict[str, Any] = {
         "seed": 0,
     },
     "georef": True,
+    # GeoPackage/GeoJSON cameras, omega/phi/kappa text and LAS points in out_dir/gis (services.sfm.gis)
+    "gis": True,
     "colmap_log_level": 1,
 }
 
@@ -518,6 +520,9 @@ def main(
         int(conf["mapping"]["min_num_matches"]),
     )
     report["ground_pairs"] = gg_records
+    if conf["gis"]:
+        with stage("combined:gis", logger):
+            report["gis"] = write_gis(rec, frame, pos, report, aerial_dir, out_dir / "gis")
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     logger.info(
         "combined model: NRI aerial %s, ground %s; N3P %d; reprojection error %.2f px -> %s",
@@ -529,6 +534,21 @@ def main(
     )
     prog(1.0, "done")
     return sparse
+
+
+def write_gis(rec, frame, pos, report: dict, aerial_dir: Path, out: Path) -> dict:
+    """GeoPackage, GeoJSON, omega/phi/kappa and LAS outputs (services.sfm.gis) in the aerial SfM's output
+    CRS (else the POS CRS, else UTM); a failure is logged and reported, the model stays."""
+    from services.pos import read_pos
+    from services.sfm import gis
+
+    try:
+        crs_doc = json.loads((aerial_dir / "georef.json").read_text()).get("crs") or {}
+        records = {r.name: r for r in read_pos(pos)}
+        return gis.main(rec, frame, records, report, out, crs_doc.get("output") or crs_doc.get("pos"))
+    except Exception as e:  # noqa: BLE001 - the reconstruction is the result; its exports are extras
+        logger.warning("GIS outputs not written: %s", e)
+        return {"error": f"{type(e).__name__}: {e}"}
 
 
 def build_input_model(

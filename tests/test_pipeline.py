@@ -275,3 +275,78 @@ def test_splat_on_all_images(tiny_job):
     splats = load_ply(job.dir("splat_all") / "point_cloud.ply")
     assert len(splats["means"]) == m["num_gaussians"] > 0
     assert pipeline.status(job)["splat_all"] == "done"
+
+
+def test_gis_outputs_open_in_independent_readers(tiny_job):
+    """combined/gis: the cameras as a GeoPackage (read here with sqlite3 and its WKB by hand), GeoJSON,
+    omega/phi/kappa text and the points as LAS (its header and first record read by hand), all agreeing
+    with the combined model."""
+    import sqlite3
+    import struct
+
+    import numpy as np
+    import pycolmap
+    from pyproj import CRS, Transformer
+
+    from services.evaluation.sfm import read_frame
+
+    job, _, _ = tiny_job
+    gis = job.dir("combined") / "gis"
+    rep = json.loads((job.dir("combined") / "report.json").read_text())
+    assert rep["gis"]["files"] == ["cameras.gpkg", "cameras.geojson", "cameras_opk.txt", "points.las"]
+    crs = CRS.from_user_input(rep["gis"]["crs"])
+    assert crs.is_projected and crs.to_epsg() == 32633  # Lund: UTM zone 33 (the POS is WGS84)
+    rec = pycolmap.Reconstruction(str(job.dir("combined") / "sparse"))
+    frame = read_frame(job.dir("combined") / "georef.json")
+    to_utm = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+
+    def utm(enu):
+        lat, lon, h = frame.to_wgs84(np.asarray(enu, float)[None])
+        x, y = to_utm.transform(lon[0], lat[0])
+        return np.array([x, y, h[0]])
+
+    registered = {im.name: im for im in rec.images.values() if im.has_pose}
+    with sqlite3.connect(gis / "cameras.gpkg") as db:
+        srs = db.execute("SELECT srs_id FROM gpkg_geometry_columns WHERE table_name='cameras'").fetchone()[0]
+        assert srs == 32633
+        rows = db.execute('SELECT name, "set", registered, reason, geom FROM cameras').fetchall()
+    by_name = {r[0]: r for r in rows}
+    unregistered = [g for g, d in rep["ground"].items() if not d["registered"]]
+    assert set(by_name) == set(registered) | set(unregistered)
+    for name, im in registered.items():
+        blob = by_name[name][4]
+        flags = blob[3]
+        envelope = {0: 0, 1: 32, 2: 48, 3: 48, 4: 64}[(flags >> 1) & 7]
+        order, gtype, x, y, z = struct.unpack("<BIddd", blob[8 + envelope : 8 + envelope + 29])
+        assert gtype in (1001, 0x80000001)
+        assert np.allclose([x, y, z], utm(im.projection_center()), atol=1e-3)
+        assert by_name[name][2] == 1 and by_name[name][1] == name.split("/")[0]
+    for g in unregistered:
+        assert by_name[g][2] == 0 and by_name[g][3]  # the reason it did not register
+
+    feats = json.loads((gis / "cameras.geojson").read_text())["features"]
+    assert len(feats) == len(rows) and all(-180 < f["geometry"]["coordinates"][0] < 180 for f in feats)
+
+    opk = [ln.split() for ln in (gis / "cameras_opk.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert {r[0] for r in opk} == set(registered)
+    for name, *vals in opk:
+        x, y, z, o, p, k = (float(v) for v in vals)
+        o, p, k = np.radians([o, p, k])
+        rx = np.array([[1, 0, 0], [0, np.cos(o), -np.sin(o)], [0, np.sin(o), np.cos(o)]])
+        ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+        rz = np.array([[np.cos(k), -np.sin(k), 0], [np.sin(k), np.cos(k), 0], [0, 0, 1]])
+        view = -(rx @ ry @ rz)[:, 2]  # the photogrammetric camera looks along -z
+        axis = registered[name].cam_from_world().rotation.matrix().T[:, 2]  # COLMAP: along +z, ENU
+        assert abs(np.degrees(np.arcsin(view[2])) - np.degrees(np.arcsin(axis[2]))) < 0.05  # same tilt
+        assert np.allclose([x, y, z], utm(registered[name].projection_center()), atol=1e-3)
+
+    data = (gis / "points.las").read_bytes()
+    assert data[:4] == b"LASF" and data[24:26] == bytes([1, 4])  # LAS 1.4
+    offset, fmt, length = struct.unpack_from("<IxxxxBH", data, 96)
+    count = struct.unpack_from("<Q", data, 247)[0]
+    scale, origin = struct.unpack_from("<3d", data, 131), struct.unpack_from("<3d", data, 155)
+    assert fmt == 7 and count == rec.num_points3D()
+    xi, yi, zi = struct.unpack_from("<3i", data, offset)
+    first = sorted(rec.points3D.items())[0][1]
+    got = np.array([xi, yi, zi]) * np.array(scale) + np.array(origin)
+    assert np.allclose(got, utm(first.xyz), atol=2e-3)

@@ -85,7 +85,11 @@ ARTIFACTS: dict[str, list[tuple[str, str]]] = {
         ("transfer/report.json", "report"),
         ("transfer/database.db", "colmap_database"),
     ],
-    "combined_sfm": [("combined/report.json", "report"), ("combined/sparse/*", "model")],
+    "combined_sfm": [
+        ("combined/report.json", "report"),
+        ("combined/sparse/*", "model"),
+        ("combined/gis/*", "gis"),
+    ],
     "splat_all": [("splat_all/point_cloud.ply", "splat"), ("splat_all/metrics.json", "metrics")],
 }
 
