@@ -100,18 +100,22 @@ def declared_sha256(values: list[str], filenames: list[str]) -> tuple[dict[str, 
     return out, errors
 
 
-def jpeg_check(data: bytes, filename: str) -> None:
-    """Decode a JPEG in full with libjpeg-turbo in strict mode: corrupt entropy-coded data between intact
-    markers (which OpenCV decodes to grey blocks with a warning on stderr) is an ImageError. Colour
-    spaces it cannot convert (CMYK) are left to OpenCV."""
+def jpeg_check(data: bytes, filename: str) -> tuple[int, int] | None:
+    """(width, height) of a JPEG decoded in full with libjpeg-turbo in strict mode: corrupt entropy-coded
+    data between intact markers (which OpenCV decodes to grey blocks with a warning on stderr) is an
+    ImageError. None for what it cannot decode otherwise (a CMYK JPEG): left to OpenCV."""
     import simplejpeg
 
     try:
-        simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=True, fastdct=True, fastupsample=True)
+        img = simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=True, fastdct=True, fastupsample=True)
     except ValueError as e:
         text = str(e)
         if "corrupt" in text.lower() or "premature" in text.lower() or "extraneous" in text.lower():
             raise ImageError(f"{filename}: corrupt JPEG ({text})") from None
+        return None
+    if img.size == 0:
+        raise ImageError(f"{filename}: cannot decode image")
+    return int(img.shape[1]), int(img.shape[0])
 
 
 def decode_check(path: Path, filename: str) -> tuple[int, int]:
@@ -126,7 +130,9 @@ def decode_check(path: Path, filename: str) -> tuple[int, int]:
     if is_jpeg and data[-2:].tobytes() != b"\xff\xd9":
         raise ImageError(f"{filename}: truncated JPEG (no end-of-image marker)")
     if is_jpeg:
-        jpeg_check(data.tobytes(), filename)
+        size = jpeg_check(data.tobytes(), filename)  # one full decode, strict
+        if size is not None:
+            return size
     img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
     if img is None or img.size == 0:
         raise ImageError(f"{filename}: cannot decode image")

@@ -4,7 +4,7 @@ direct S3, and the match_views stage time with 1 and 2 Celery worker processes.
 Starts its own throwaway PostgreSQL database, SeaweedFS (`weed mini`), Redis db, uvicorn and Celery
 workers (helpers of tests/servers.py); everything is stopped and removed at the end.
 
-    python bench/service.py [--clients 50] [--requests 2000] [--upload-mb 64] [--skip-workers]
+    python bench/service.py [--clients 50] [--requests 2000] [--upload-mb 64] [--skip-workers] [--json F]
 """
 
 from __future__ import annotations
@@ -191,6 +191,7 @@ class Stack:
             "DISPATCHER": "celery",
             "NUM_THREADS": 1,
             "LOG_LEVEL": "WARNING",
+            "RATE_LIMIT_PER_MINUTE": 0,  # the load test is one key's flood: measure latency, not 429s
         }
         if s3 is not None:
             values.update(
@@ -374,6 +375,7 @@ def main() -> None:
     ap.add_argument("--upload-mb", type=float, default=64)
     ap.add_argument("--uploads", type=int, default=4)
     ap.add_argument("--skip-workers", action="store_true")
+    ap.add_argument("--json", type=Path, help="also write the figures here (docs/results/service.json)")
     args = ap.parse_args()
 
     from rich.console import Console
@@ -382,6 +384,7 @@ def main() -> None:
     console = Console()
     stack = Stack()
     rows: list[tuple[str, str, str]] = []
+    figures: dict[str, float] = {}
     try:
         with console.status("starting PostgreSQL, Redis, SeaweedFS, uvicorn"):
             stack.start()
@@ -404,6 +407,12 @@ def main() -> None:
         with console.status(f"GET latency, {args.clients} clients x {args.requests} requests"):
             health = asyncio.run(hammer(base, "/healthz", headers, args.clients, args.requests))
             jobs = asyncio.run(hammer(base, f"/jobs/{job_id}", headers, args.clients, args.requests))
+            one = asyncio.run(hammer(base, f"/jobs/{job_id}", headers, 1, min(args.requests, 500)))
+        rows.append(("GET /jobs/{id} p50 / p99, 1 client", f"{one['p50']:.1f} / {one['p99']:.1f} ms", ""))
+        figures["status_p99_ms_50_clients"] = jobs["p99"]
+        figures["status_p99_ms_1_client"] = one["p99"]
+        figures["status_rps_50_clients"] = jobs["rps"]
+        figures["healthz_p99_ms_50_clients"] = health["p99"]
         for name, m in (("GET /healthz", health), ("GET /jobs/{id}", jobs)):
             rows.append((f"{name} p50 / p99", f"{m['p50']:.1f} / {m['p99']:.1f} ms", f"{m['errors']} errors"))
             rows.append((f"{name} throughput", f"{m['rps']:.0f} req/s", f"{args.clients} clients"))
@@ -427,6 +436,7 @@ def main() -> None:
             direct_mbs = size_mb * len(direct_t) / sum(direct_t)
             rows.append(("boto3 put_object direct", f"{direct_mbs:.1f} MB/s", "same bytes, same S3 server"))
             rows.append(("API / direct", f"x{api_mbs / direct_mbs:.2f}", ""))
+            figures["upload_ratio_vs_boto3"] = api_mbs / direct_mbs
         else:
             rows.append(("boto3 put_object direct", "not measured", "no S3 server"))
 
@@ -443,6 +453,7 @@ def main() -> None:
                         f"fresh tiny job, whole job {w[f'job{n}_s']:.1f} s",
                     ))  # fmt: skip
                 rows.append(("match_views 2 / 1 workers", f"x{w[2] / w[1]:.2f}", "time ratio (< 1: faster)"))
+                figures["match_views_speedup_2_workers"] = w[1] / w[2]
             except Exception as e:  # noqa: BLE001 - reported in the table
                 rows.append(("match_views, 1 / 2 workers", "not measured", str(e).splitlines()[0][:200]))
     finally:
@@ -457,6 +468,20 @@ def main() -> None:
     console.print(table)
     for note in stack.notes:
         console.print(f"note: {note}")
+    if args.json:
+        import subprocess
+
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+        doc = {
+            "command": "python bench/service.py " + " ".join(sys.argv[1:]),
+            "commit": commit.strip(),
+            "cores": os.cpu_count(),
+            "clients": args.clients,
+            "figures": figures,
+        }
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=1))
+        console.print(f"figures: {args.json}")
 
 
 if __name__ == "__main__":
