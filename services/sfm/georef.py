@@ -257,13 +257,34 @@ class JointTerms:
             d = self.tgt[:, :2] - self.tgt[:, :2].mean(0)
             r_pos[:, 2] -= d @ x[7:9]
         Ra = Rotation.from_rotvec([0.0, 0.0, x[-1]]).as_matrix() @ R if self.yaw_bias else R
-        r_att = np.array(
-            [Rotation.from_matrix(self.R_pos[i].T @ Ra @ self.R_rec[i]).as_rotvec() for i in self.pairs]
-        ).reshape(-1, 3)
+        if self.pairs:  # rotvec(R_pos^T Ra R_rec) of every image with an attitude, stacked
+            Rp, Rr = self._stacked
+            r_att = Rotation.from_matrix(np.swapaxes(Rp, 1, 2) @ Ra @ Rr).as_rotvec()
+        else:
+            r_att = np.zeros((0, 3))
         n = len(self.src)
-        r_pri = np.array([[(R @ self.R_rec[i][:, k])[2] for k in self.axes] for i in range(n)])
+        if self.axes:  # the up component of each prior axis: row 2 of R R_rec, columns `axes`
+            r_pri = np.einsum("j,njk->nk", R[2], self._rec_all[:, :, self.axes])
+        else:
+            r_pri = np.zeros((n, 0))
         r_lvl = (A @ R.T)[:, 2] * self.level_weight if self.sig_level else np.zeros(0)
-        return r_pos, r_att, r_pri.reshape(n, len(self.axes)), r_lvl
+        return r_pos, r_att, r_pri, r_lvl
+
+    @property
+    def _stacked(self) -> tuple[np.ndarray, np.ndarray]:
+        """(P, 3, 3) POS attitudes and reconstruction rotations of the images in `pairs` (cached)."""
+        key = tuple(self.pairs)
+        if getattr(self, "_stack_key", None) != key:
+            self._stack = (np.array([self.R_pos[i] for i in key]), np.array([self.R_rec[i] for i in key]))
+            self._stack_key = key
+        return self._stack
+
+    @property
+    def _rec_all(self) -> np.ndarray:
+        """(N, 3, 3) reconstruction rotations (cached)."""
+        if getattr(self, "_rec_cache", None) is None:
+            self._rec_cache = np.array(self.R_rec)
+        return self._rec_cache
 
     def residuals(self, x: np.ndarray, s0: float, R0: np.ndarray) -> np.ndarray:
         r_pos, r_att, r_pri, r_lvl = self.parts(x, s0, R0)
