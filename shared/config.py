@@ -39,6 +39,11 @@ class Settings(BaseSettings):
         "embedded",
         description="How jobs reach the workers: embedded (a thread of the API process) or celery",
     )
+    public_base_url: str = Field(
+        "",
+        description="The API's public URL (https://midview.example.com): prefixes the result links of "
+        "webhook payloads; empty: links relative to the API root",
+    )
     webhook_allow_networks: str = Field(
         "",
         description="CIDR networks (comma-separated) that webhooks may reach although they are not public "

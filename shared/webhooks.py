@@ -91,8 +91,26 @@ def job_event(job: Job) -> str | None:
     return {JobStatus.succeeded: "job.succeeded", JobStatus.failed: "job.failed"}.get(job.status)
 
 
+def artifact_links(job: Job, base_url: str = "") -> list[dict[str, Any]]:
+    """The job's stored results with their download links (GET /artifacts/{id}/download, prefixed by
+    settings.public_base_url when set), so that a receiver needs no polling to fetch them."""
+    base = base_url.rstrip("/")
+    return [
+        {
+            "id": a.id,
+            "name": a.name,
+            "kind": a.kind,
+            "size_bytes": a.size_bytes,
+            "sha256": a.sha256,
+            "download": f"{base}/artifacts/{a.id}/download",
+        }
+        for a in sorted(job.artifacts, key=lambda a: a.name)
+    ]
+
+
 def job_payload(job: Job) -> dict[str, Any]:
     return {
+        "artifacts": artifact_links(job, get_settings().public_base_url),
         "job": {
             "id": job.id,
             "project_id": job.project_id,
@@ -103,7 +121,7 @@ def job_payload(job: Job) -> dict[str, Any]:
             "outcome": (job.metrics or {}).get("outcome"),
             "timings": job.timings or {},
             "finished_at": job.finished_at.isoformat() if job.finished_at else None,
-        }
+        },
     }
 
 

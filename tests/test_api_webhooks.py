@@ -116,6 +116,12 @@ def test_delivery_is_signed_and_retried(api_env, receiver: Receiver) -> None:
     ).json()
     ok_job = _finished_job(api_env, t, JobStatus.succeeded)
     failed_job = _finished_job(api_env, t, JobStatus.failed)  # not subscribed: no delivery
+    with api_env.session() as s:  # a stored result: the payload links to it
+        key = f"tests/{ok_job}/combined/gis/cameras.geojson"
+        api_env.storage.put_bytes(key, b'{"type": "FeatureCollection", "features": []}', "application/json")
+        art = crud.record_artifact(s, ok_job, "gis", "combined/gis/cameras.geojson", key)
+        s.commit()
+        art_id = art.id
     t0 = utcnow()
     with api_env.session() as s:
         assert len(enqueue_job_event(s, crud.get_job(s, ok_job), now=t0)) == 1
@@ -142,6 +148,12 @@ def test_delivery_is_signed_and_retried(api_env, receiver: Receiver) -> None:
     headers, body = receiver.requests[-1]
     payload = json.loads(body)
     assert payload["event"] == "job.succeeded" and payload["data"]["job"]["id"] == ok_job
+    (link,) = payload["data"]["artifacts"]
+    assert (
+        link["name"] == "combined/gis/cameras.geojson" and link["download"] == f"/artifacts/{art_id}/download"
+    )
+    got = c.get(link["download"], headers=t.headers)
+    assert got.status_code == 200 and got.json()["type"] == "FeatureCollection"
     assert payload["data"]["job"]["status"] == "succeeded"
     assert payload["id"] == json.loads(receiver.requests[0][1])["id"]  # one delivery id across retries
     timestamp, signature = headers[TIMESTAMP_HEADER], headers[SIGNATURE_HEADER]
