@@ -214,6 +214,12 @@ def run(
             f"combined model: NRI aerial {rep['NRI']['aerial']}, ground {rep['NRI']['ground']}, "
             f"N3P {rep['num_points3D']} -> {job.dir('combined') / 'sparse'}"
         )
+        from shared.outcome import job_outcome
+
+        for warning in job_outcome({"combined_sfm": rep})["warnings"]:
+            typer.echo(f"warning: {warning}")
+        if (rep.get("gis") or {}).get("files"):
+            typer.echo(f"GIS outputs ({rep['gis']['crs']}): {job.dir('combined') / 'gis'}")
     if "splat_all" in results:
         m = json.loads((job.dir("splat_all") / "metrics.json").read_text())
         typer.echo(
