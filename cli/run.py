@@ -121,6 +121,9 @@ def run(
     splat_max_width: int = typer.Option(400, help="3DGS training image width"),
     max_keypoints: int = typer.Option(1024, help="keypoints per image for matching"),
     seed: int = typer.Option(0, help="random seed"),
+    out_crs: str | None = typer.Option(
+        None, "--out-crs", help="CRS of the georeferenced outputs, e.g. EPSG:32633 (default: the POS's)"
+    ),
     stages: str | None = typer.Option(
         None, help=f"comma-separated stages to run (default: {','.join(DEFAULT_STAGES)})"
     ),
@@ -189,6 +192,7 @@ def run(
                 "splat_max_width": splat_max_width,
                 "max_keypoints": max_keypoints,
                 "seed": seed,
+                "out_crs": out_crs,
             },
             settings={
                 "renderer": renderer,

@@ -199,7 +199,10 @@ class Job:
         from services import sfm
 
         base = sfm.confs[self.options.sfm_features]
-        return _merge(base, _merge({"mapping": {"seed": self.options.seed}}, self.settings["sfm"]))
+        over: dict[str, Any] = {"mapping": {"seed": self.options.seed}}
+        if self.options.out_crs:
+            over["export"] = {"out_crs": self.options.out_crs}
+        return _merge(base, _merge(over, self.settings["sfm"]))
 
     def splat_conf(self) -> dict:
         from services.splat import confs, rescale_schedule, resolve_backend

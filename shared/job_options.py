@@ -84,6 +84,26 @@ class JobOptions(BaseModel):
     )
     max_keypoints: int = Field(4096, ge=64, le=65_536, description="Keypoints per image for matching")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Random seed (view planning, training)")
+    out_crs: str | None = Field(
+        None,
+        max_length=64,
+        description="CRS of the georeferenced outputs (camera lists, GIS files), e.g. EPSG:32633; default: "
+        "the project's, else the POS's (GIS files: the site's UTM zone when that is geographic)",
+    )
+
+    @field_validator("out_crs")
+    @classmethod
+    def _known_crs(cls, value: str | None) -> str | None:
+        if value is None:
+            return None
+        from pyproj import CRS
+        from pyproj.exceptions import CRSError
+
+        try:
+            CRS.from_user_input(value)
+        except CRSError as e:
+            raise ValueError(f"unknown CRS {value!r}: {e}") from None
+        return value
 
     @field_validator("stages")
     @classmethod

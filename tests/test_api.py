@@ -28,10 +28,9 @@ def pos_csv(names: list[str], lat: float = 55.7) -> str:
     return POS_HEADER + "\n".join(rows) + "\n"
 
 
-def new_project(env, tenant, name: str | None = None) -> str:
-    r = env.client.post(
-        "/projects", json={"name": name or f"p-{uuid.uuid4().hex[:8]}"}, headers=tenant.headers
-    )
+def new_project(env, tenant, name: str | None = None, crs: str | None = None) -> str:
+    body = {"name": name or f"p-{uuid.uuid4().hex[:8]}", **({"crs": crs} if crs else {})}
+    r = env.client.post("/projects", json=body, headers=tenant.headers)
     assert r.status_code == 201, r.text
     return r.json()["id"]
 
@@ -480,10 +479,17 @@ def test_pos_upload_validation_and_listing(api_env, make_jpeg) -> None:
 
 # jobs
 def _ready_project(
-    env, tenant, make_jpeg, ground: bool = True, pos: bool = True, aerial: int = 3, cameras: bool = True
+    env,
+    tenant,
+    make_jpeg,
+    ground: bool = True,
+    pos: bool = True,
+    aerial: int = 3,
+    cameras: bool = True,
+    crs: str | None = None,
 ) -> str:
     """A project with `aerial` aerial images (one ground image), POS rows for all and a cameras.json."""
-    pid = new_project(env, tenant)
+    pid = new_project(env, tenant, crs=crs)
     files = {f"A{i + 1}.jpg": make_jpeg(seed=i) for i in range(aerial)}
     assert upload(env, tenant, pid, files).status_code == 201
     names = [f"aerial/{f}" for f in files]
@@ -575,6 +581,14 @@ def test_job_create_validation_and_preconditions(api_env, make_jpeg) -> None:
         assert [crud.list_jobs(s, p) for p in (two, partial, no_cams)] == [[], [], []]
     r = c.post(f"/projects/{pid}/jobs", headers=t.headers)  # no body: every default
     assert r.status_code == 201 and r.json()["options"]["stages"][-1] == "combined_sfm"
+    assert r.json()["options"]["out_crs"] is None
+    r = c.post(f"/projects/{pid}/jobs", json={"options": {"out_crs": "EPSG:999999"}}, headers=t.headers)
+    assert r.status_code == 422 and "unknown CRS" in r.text
+    sweref = _ready_project(api_env, t, make_jpeg, crs="EPSG:3006")  # the project's CRS is the default
+    r = c.post(f"/projects/{sweref}/jobs", json={}, headers=t.headers)
+    assert r.status_code == 201 and r.json()["options"]["out_crs"] == "EPSG:3006"
+    r = c.post(f"/projects/{sweref}/jobs", json={"options": {"out_crs": "EPSG:32633"}}, headers=t.headers)
+    assert r.json()["options"]["out_crs"] == "EPSG:32633"
 
 
 def test_job_create_status_cancel_rerun(api_env, make_jpeg) -> None:

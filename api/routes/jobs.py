@@ -149,6 +149,8 @@ def create_job(
     """Queue a job on the project with the given options (defaults for the rest; no body: all defaults),
     on a snapshot of its inputs (images and POS: deleting or replacing them while it runs is 409)."""
     options = body.options if body is not None else JobOptions()
+    if options.out_crs is None and project.crs:  # the project's output CRS, unless the job names one
+        options = options.model_copy(update={"out_crs": project.crs})
     _check_inputs(session, storage, project, options)
     job = crud.create_job(session, project.id, options.model_dump(mode="json"))
     session.commit()
