@@ -142,6 +142,7 @@ def compare_with_truth(out_dir: str | Path, scene_dir: str | Path, image_set: st
     out["absolute_m"] = {
         "mean": float(abs_err.mean()),
         "median": float(np.median(abs_err)),
+        "p90": float(np.percentile(abs_err, 90)),
         "max": float(abs_err.max()),
     }
     if len(names) >= 3:
@@ -153,6 +154,7 @@ def compare_with_truth(out_dir: str | Path, scene_dir: str | Path, image_set: st
         out["aligned_m"] = {
             "mean": float(rel.mean()),
             "median": float(np.median(rel)),
+            "p90": float(np.percentile(rel, 90)),
             "max": float(rel.max()),
         }
     return out
