@@ -187,12 +187,12 @@ def materialize(
     root = job_root(work_dir, job_row.id)
     inputs = root / INPUTS
     project = job_row.project
-    changed = crud.inputs_changed(session, job_row)
+    images = crud.list_images(session, project.id)
+    changed = crud.inputs_changed(session, job_row, images)
     if changed:
         raise InputsChanged(
             f"job {job_row.id}: its inputs changed since it was created: {'; '.join(changed)}"
         )
-    images = crud.list_images(session, project.id)
     if job_row.inputs:  # the images the job was created on, not those uploaded since
         images = [im for im in images if im.name in job_row.inputs.get("images", {})]
     names = {im.name for im in images}

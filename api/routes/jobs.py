@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import logging
 
-import sqlalchemy as sa
 from fastapi import APIRouter, HTTPException, Request, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy.orm import Session
@@ -55,10 +54,6 @@ def list_options() -> OptionsOut:
     return OptionsOut(
         options=[OptionSpec(**s) for s in option_specs()], json_schema=JobOptions.model_json_schema()
     )
-
-
-def _count(session: Session, stmt: sa.Select) -> int:
-    return int(session.scalar(stmt) or 0)
 
 
 MIN_AERIAL = 3  # georeferencing fits a similarity to at least three camera centres

@@ -385,13 +385,14 @@ def input_snapshot(session: Session, project_id: str) -> dict[str, Any]:
     return {"images": images, "pos_sha256": pos_digest(session, project_id)}
 
 
-def inputs_changed(session: Session, job: Job) -> list[str]:
+def inputs_changed(session: Session, job: Job, images: list[Image] | None = None) -> list[str]:
     """How the project's inputs differ from the job's snapshot (images gone or replaced, POS changed);
-    empty when they are the same (or the job has no snapshot)."""
+    empty when they are the same (or the job has no snapshot). `images`: the project's, if listed."""
     snap = job.inputs or {}
     if not snap:
         return []
-    now = {im.name: im.sha256 for im in list_images(session, job.project_id)}
+    images = list_images(session, job.project_id) if images is None else images
+    now = {im.name: im.sha256 for im in images}
     out = [f"image {n} was deleted" for n in sorted(snap.get("images", {})) if n not in now]
     out += [
         f"image {n} was replaced"
