@@ -191,8 +191,18 @@ class PosUploadResult(BaseModel):
 
 
 # jobs
+JOB_KEY_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,127}$"
+
+
 class JobCreate(In):
     options: JobOptions = Field(default_factory=JobOptions)
+    key: str | None = Field(
+        None,
+        pattern=JOB_KEY_PATTERN,
+        description="Idempotency key chosen by the client: a second creation with the same key on the "
+        "project returns the first job (200) instead of making another; with other options it is 409",
+    )
+    campaign_id: str | None = Field(None, max_length=36, description="The campaign the job belongs to")
 
 
 class JobRerun(In):
@@ -229,6 +239,8 @@ class JobOut(Out):
     )
     error: str | None
     attempt: int
+    key: str | None = Field(None, description="The client's idempotency key")
+    campaign_id: str | None = None
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -236,6 +248,63 @@ class JobOut(Out):
 
 class JobDetail(JobOut):
     stages: list[StageRunOut]
+
+
+# campaigns
+class CampaignCreate(In):
+    name: str = Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$")
+    max_concurrent: int = Field(
+        2, ge=1, le=1000, description="Jobs of the campaign queued or running at once"
+    )
+
+
+class CampaignJob(BaseModel):
+    id: str
+    project_id: str
+    project_name: str
+    key: str | None
+    status: str
+    current_stage: str | None
+    progress_percent: float
+    attempt: int
+    failed_stage: str | None = Field(description="The stage that failed in the job's latest attempt")
+    error: str | None
+    registered: dict[str, int] = Field(description="Registered images per set (a succeeded job's outcome)")
+    images: dict[str, int]
+    result: str | None = Field(description="ok or warnings for a succeeded job")
+
+
+class CampaignOut(BaseModel):
+    id: str
+    name: str
+    max_concurrent: int
+    created_at: datetime
+    jobs_by_status: dict[str, int] = Field(description="Number of jobs per status")
+    active: int = Field(description="Jobs queued or running")
+    ground_registered: int = Field(description="Ground images registered, all succeeded jobs together")
+    ground_images: int = Field(description="Ground images of the succeeded jobs")
+    done: bool = Field(description="Every job finished (succeeded, failed or cancelled)")
+
+
+class CampaignDetail(CampaignOut):
+    jobs: list[CampaignJob]
+
+
+class CampaignRetry(In):
+    from_failed_stage: bool = Field(
+        True, description="Rerun from the stage that failed; false: from the start"
+    )
+    limit: int | None = Field(
+        None,
+        ge=0,
+        le=1000,
+        description="Rerun at most this many (even beyond the free slots); default: the free slots",
+    )
+
+
+class CampaignRetried(BaseModel):
+    rerun: list[CampaignJob]
+    waiting: list[str] = Field(description="Failed jobs not rerun yet: no free slot (call again later)")
 
 
 class OptionSpec(BaseModel):

@@ -41,11 +41,12 @@ from shared.db.session import (
 )
 
 REPO = Path(__file__).resolve().parents[1]
-HEAD = "0004"
+HEAD = "0005"
 TABLES = {
     "tenants",
     "api_keys",
     "projects",
+    "campaigns",
     "images",
     "pos_records",
     "jobs",

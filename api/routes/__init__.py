@@ -1,6 +1,6 @@
 """Routers of the REST API, one module per resource."""
 
-from api.routes import artifacts, cameras, health, images, jobs, pos, projects, uploads, webhooks
+from api.routes import artifacts, cameras, campaigns, health, images, jobs, pos, projects, uploads, webhooks
 
 ROUTERS = [
     health.router,
@@ -10,6 +10,7 @@ ROUTERS = [
     pos.router,
     cameras.router,
     jobs.router,
+    campaigns.router,
     artifacts.router,
     webhooks.router,
 ]

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import json
 import logging
+from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Request, status
+from fastapi import APIRouter, HTTPException, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy.orm import Session
 
@@ -13,6 +14,7 @@ from api.deps import DispatcherDep, JobDep, ProjectDep, SessionDep, SettingsDep,
 from api.events import job_events
 from api.schemas import JobCreate, JobDetail, JobOut, JobRerun, OptionsOut, OptionSpec, StageRunOut
 from shared.db import crud
+from shared.db.crud import ConflictError
 from shared.db.models import Job, JobStatus, Project
 from shared.dispatch import Dispatcher
 from shared.job_options import JobOptions, option_specs
@@ -37,6 +39,8 @@ def job_out(job: Job) -> JobOut:
         outcome=(job.metrics or {}).get("outcome"),
         error=job.error,
         attempt=job.attempt,
+        key=job.client_key,
+        campaign_id=job.campaign_id,
         created_at=job.created_at,
         started_at=job.started_at,
         finished_at=job.finished_at,
@@ -125,12 +129,27 @@ def _submit(session: Session, dispatcher: Dispatcher, job: Job, from_stage: str 
         session.commit()
 
 
+def _same_job(existing: Job, options: dict, campaign_id: str | None) -> Job:
+    """The job a repeated creation with its key asks for; 409 when that asks for something else."""
+    if existing.options != options or existing.campaign_id != campaign_id:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"job key {existing.client_key!r} is taken by job {existing.id} with other options or campaign",
+        )
+    return existing
+
+
 @router.post(
     "/projects/{project_id}/jobs",
     status_code=status.HTTP_201_CREATED,
     response_model=JobOut,
     responses={
-        409: {"description": "The project lacks aerial images, ground images, POS rows or intrinsics"},
+        200: {"description": "A job with this key exists already: that job", "model": JobOut},
+        404: {"description": "No such campaign"},
+        409: {
+            "description": "The project lacks aerial images, ground images, POS rows or intrinsics; or the "
+            "key is taken by a job with other options"
+        },
         503: {"description": "The job could not be queued"},
     },
 )
@@ -139,23 +158,48 @@ def create_job(
     session: SessionDep,
     dispatcher: DispatcherDep,
     storage: StorageDep,
+    response: Response,
     body: JobCreate | None = None,
 ) -> JobOut:
     """Queue a job on the project with the given options (defaults for the rest; no body: all defaults),
-    on a snapshot of its inputs (images and POS: deleting or replacing them while it runs is 409)."""
-    options = body.options if body is not None else JobOptions()
+    on a snapshot of its inputs (images and POS: deleting or replacing them while it runs is 409).
+    With a `key`, the creation is idempotent: repeating it returns the job made the first time."""
+    body = body if body is not None else JobCreate()
+    options = body.options
     if options.out_crs is None and project.crs:  # the project's output CRS, unless the job names one
         options = options.model_copy(update={"out_crs": project.crs})
+    dumped = options.model_dump(mode="json")
+    if body.key is not None and (existing := crud.job_by_key(session, project.id, body.key)) is not None:
+        response.status_code = status.HTTP_200_OK
+        return job_out(_same_job(existing, dumped, body.campaign_id))
+    campaign_id = body.campaign_id
+    if campaign_id is not None and crud.get_campaign(session, campaign_id, project.tenant_id) is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"campaign {body.campaign_id} not found")
     _check_inputs(session, storage, project, options)
-    job = crud.create_job(session, project.id, options.model_dump(mode="json"))
-    session.commit()
+    try:
+        job = crud.create_job(session, project.id, dumped, client_key=body.key, campaign_id=body.campaign_id)
+        session.commit()
+    except ConflictError:  # a concurrent creation with the same key won: answer with its job
+        session.rollback()
+        existing = crud.job_by_key(session, project.id, body.key or "")
+        if existing is None:
+            raise
+        response.status_code = status.HTTP_200_OK
+        return job_out(_same_job(existing, dumped, body.campaign_id))
     _submit(session, dispatcher, job)
     log.info("project %s: job %s queued", project.id, job.id)
     return job_out(job)
 
 
 @router.get("/projects/{project_id}/jobs", response_model=list[JobOut])
-def list_jobs(project: ProjectDep, session: SessionDep) -> list[JobOut]:
+def list_jobs(
+    project: ProjectDep,
+    session: SessionDep,
+    key: Annotated[str | None, Query(max_length=128, description="Only the job with this key")] = None,
+) -> list[JobOut]:
+    if key is not None:
+        job = crud.job_by_key(session, project.id, key)
+        return [job_out(job)] if job is not None else []
     return [job_out(j) for j in crud.list_jobs(session, project.id)]
 
 
@@ -214,7 +258,12 @@ def rerun_job(
     job: JobDep, session: SessionDep, dispatcher: DispatcherDep, body: JobRerun | None = None
 ) -> JobOut:
     """Run a finished job again (attempt + 1), from from_stage on or from the start."""
-    from_stage = body.from_stage if body else None
+    return job_out(rerun(session, dispatcher, job, body.from_stage if body else None))
+
+
+def rerun(session: Session, dispatcher: Dispatcher, job: Job, from_stage: str | None) -> Job:
+    """Queue a finished job again from from_stage (None: from the start); 422 for a stage the job does
+    not run, 409 when its inputs changed, 503 when it cannot be queued."""
     if from_stage is not None:
         try:
             JobOptions.model_validate(job.options or {}).stages_from(from_stage)
@@ -229,4 +278,4 @@ def rerun_job(
     job = crud.rerun_job(session, job.id)  # by id: the row is locked and reloaded
     session.commit()
     _submit(session, dispatcher, job, from_stage)
-    return job_out(job)
+    return job

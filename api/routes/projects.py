@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import contextlib
 import logging
+from typing import Annotated
 
 import sqlalchemy as sa
-from fastapi import APIRouter, Response, status
+from fastapi import APIRouter, Query, Response, status
 
 from api.deps import DispatcherDep, ProjectDep, SessionDep, StorageDep, TenantDep
 from api.schemas import ProjectCreate, ProjectDetail, ProjectOut
@@ -34,8 +35,13 @@ def create_project(body: ProjectCreate, tenant: TenantDep, session: SessionDep) 
 
 
 @router.get("", response_model=list[ProjectOut])
-def list_projects(tenant: TenantDep, session: SessionDep) -> list[ProjectOut]:
-    return [ProjectOut.model_validate(p) for p in crud.list_projects(session, tenant.id)]
+def list_projects(
+    tenant: TenantDep,
+    session: SessionDep,
+    name: Annotated[str | None, Query(max_length=200, description="Only the project of this name")] = None,
+) -> list[ProjectOut]:
+    projects = crud.list_projects(session, tenant.id)
+    return [ProjectOut.model_validate(p) for p in projects if name is None or p.name == name]
 
 
 @router.get("/{project_id}", response_model=ProjectDetail)

@@ -22,6 +22,7 @@ from shared.db.models import (
     TERMINAL_JOB_STATUSES,
     ApiKey,
     Artifact,
+    Campaign,
     Image,
     Job,
     JobStatus,
@@ -429,11 +430,26 @@ def create_job(
     project_id: str,
     options: dict[str, Any] | None = None,
     inputs: dict[str, Any] | None = None,
+    client_key: str | None = None,
+    campaign_id: str | None = None,
 ) -> Job:
-    """A queued job of the project, on a snapshot of its inputs (input_snapshot, by default now's)."""
+    """A queued job of the project, on a snapshot of its inputs (input_snapshot, by default now's);
+    ConflictError if the project has a job with this client_key already (job_by_key finds it)."""
     project = _project(session, project_id)
     snap = input_snapshot(session, project.id) if inputs is None else inputs
-    return _add(session, Job(project_id=project.id, options=dict(options or {}), inputs=snap), "job exists")
+    job = Job(
+        project_id=project.id,
+        options=dict(options or {}),
+        inputs=snap,
+        client_key=client_key,
+        campaign_id=campaign_id,
+    )
+    return _add(session, job, f"job key {client_key!r} exists" if client_key else "job exists")
+
+
+def job_by_key(session: Session, project_id: str, client_key: str) -> Job | None:
+    stmt = sa.select(Job).where(Job.project_id == str(project_id), Job.client_key == client_key)
+    return session.scalar(stmt)
 
 
 def get_job(session: Session, job_id: str, tenant_id: str | None = None) -> Job | None:
@@ -536,6 +552,36 @@ def rerun_job(session: Session, job: Job | str) -> Job:
     job.timings, job.metrics = {}, {}
     session.flush()
     return job
+
+
+# campaigns
+def create_campaign(session: Session, tenant_id: str, name: str, max_concurrent: int = 2) -> Campaign:
+    """A new campaign; ConflictError if the tenant has one of that name (campaign_by_name finds it)."""
+    campaign = Campaign(tenant_id=str(tenant_id), name=name, max_concurrent=max_concurrent)
+    return _add(session, campaign, f"campaign {name!r} already exists")
+
+
+def get_campaign(session: Session, campaign_id: str, tenant_id: str | None = None) -> Campaign | None:
+    """The campaign, or None if absent or (with tenant_id) another tenant's."""
+    campaign = session.get(Campaign, str(campaign_id))
+    if campaign is None or (tenant_id is not None and campaign.tenant_id != str(tenant_id)):
+        return None
+    return campaign
+
+
+def campaign_by_name(session: Session, tenant_id: str, name: str) -> Campaign | None:
+    stmt = sa.select(Campaign).where(Campaign.tenant_id == str(tenant_id), Campaign.name == name)
+    return session.scalar(stmt)
+
+
+def list_campaigns(session: Session, tenant_id: str) -> list[Campaign]:
+    stmt = sa.select(Campaign).where(Campaign.tenant_id == str(tenant_id)).order_by(Campaign.created_at)
+    return list(session.scalars(stmt))
+
+
+def campaign_jobs(session: Session, campaign_id: str) -> list[Job]:
+    stmt = sa.select(Job).where(Job.campaign_id == str(campaign_id)).order_by(Job.created_at)
+    return list(session.scalars(stmt))
 
 
 # stages and artifacts

@@ -134,6 +134,7 @@ class Tenant(Base):
     api_keys: Mapped[list[ApiKey]] = _children("tenant")
     projects: Mapped[list[Project]] = _children("tenant")
     webhooks: Mapped[list[Webhook]] = _children("tenant")
+    campaigns: Mapped[list[Campaign]] = _children("tenant")
 
 
 class ApiKey(Base):
@@ -171,6 +172,23 @@ class Project(Base):
     pos_records: Mapped[list[PosRecordRow]] = _children("project")
     jobs: Mapped[list[Job]] = _children("project")
     uploads: Mapped[list[Upload]] = _children("project")
+
+
+class Campaign(Base):
+    """A batch of surveys submitted together: one job per survey (jobs.campaign_id), at most
+    max_concurrent of them queued or running at once (the submitting client keeps to it)."""
+
+    __tablename__ = "campaigns"
+    __table_args__ = (sa.UniqueConstraint("tenant_id", "name", name="uq_campaigns_tenant_name"),)
+
+    id: Mapped[str] = _id()
+    tenant_id: Mapped[str] = _fk("tenants.id")
+    name: Mapped[str] = mapped_column(sa.String(200))
+    max_concurrent: Mapped[int] = mapped_column(default=2)
+    created_at: Mapped[datetime] = _created()
+
+    tenant: Mapped[Tenant] = relationship(back_populates="campaigns")
+    jobs: Mapped[list[Job]] = relationship(back_populates="campaign", passive_deletes=True)
 
 
 class Image(Base):
@@ -246,6 +264,7 @@ class Job(Base):
     __table_args__ = (
         sa.CheckConstraint("progress >= 0 AND progress <= 1", name="progress_range"),
         sa.Index("ix_jobs_project_created", "project_id", "created_at"),
+        sa.UniqueConstraint("project_id", "client_key", name="uq_jobs_project_client_key"),
     )
 
     id: Mapped[str] = _id()
@@ -263,11 +282,17 @@ class Job(Base):
     error: Mapped[str | None] = mapped_column(sa.Text)
     attempt: Mapped[int] = mapped_column(default=1)
     celery_root_id: Mapped[str | None] = mapped_column(sa.String(255))
+    # the client's idempotency key: a second creation with it returns this job
+    client_key: Mapped[str | None] = mapped_column(sa.String(128))
+    campaign_id: Mapped[str | None] = mapped_column(
+        sa.String(36), sa.ForeignKey("campaigns.id", ondelete="SET NULL"), index=True
+    )
     created_at: Mapped[datetime] = _created()
     started_at: Mapped[datetime | None]
     finished_at: Mapped[datetime | None]
 
     project: Mapped[Project] = relationship(back_populates="jobs")
+    campaign: Mapped[Campaign | None] = relationship(back_populates="jobs")
     stage_runs: Mapped[list[StageRun]] = _children("job", order_by="StageRun.started_at")
     artifacts: Mapped[list[Artifact]] = _children("job")
 
