@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from cli import admin, evaluate, match, pos, run, serve, sfm, splat, synth, worker
+from cli import admin, client, evaluate, match, pos, run, serve, sfm, splat, synth, worker
 from shared.config import get_settings
 from shared.logging import setup_logging
 
@@ -31,6 +31,10 @@ app.command("run")(run.run)
 app.command("demo")(run.demo)
 app.command("serve")(serve.serve)
 app.command("worker")(worker.worker)
+app.command("submit")(client.submit)
+app.command("jobs")(client.jobs)
+app.command("download")(client.download)
+app.add_typer(client.campaign_app, name="campaign")
 app.add_typer(admin.app, name="admin")
 app.add_typer(evaluate.app, name="eval")
 app.add_typer(match.app, name="match")

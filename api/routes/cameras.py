@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from api.deps import ProjectDep, SessionDep, StorageDep
 from shared.db import crud
+from shared.storage import StorageKeyError
 from shared.storage.keys import cameras_key
 
 router = APIRouter(prefix="/projects/{project_id}/cameras", tags=["cameras"])
@@ -52,11 +53,18 @@ class CamerasIn(BaseModel):
 @router.put("", response_model=CamerasIn, response_model_exclude_none=True)
 def put_cameras(body: CamerasIn, project: ProjectDep, storage: StorageDep, session: SessionDep) -> CamerasIn:
     """Store (replace) the project's intrinsics. Unknown models, wrong parameter counts or sizes: 422;
-    409 while a queued or running job uses them."""
-    crud.check_inputs_free(session, project.id)
+    409 while a queued or running job uses them (unless they are the stored ones)."""
     data = body.model_dump(exclude_none=True)
     if not data:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "give intrinsics for aerial and/or ground")
+    key = cameras_key(project.tenant_id, project.id)
+    try:
+        unchanged = json.loads(storage.get_bytes(key)) == json.loads(json.dumps(data))
+    except (StorageKeyError, ValueError):
+        unchanged = False
+    if unchanged:
+        return body
+    crud.check_inputs_free(session, project.id)
     storage.put_bytes(
         cameras_key(project.tenant_id, project.id), json.dumps(data, indent=1).encode(), "application/json"
     )

@@ -46,8 +46,8 @@ def upload_pos(
 ) -> PosUploadResult:
     """Parse and validate a POS file against the project's images, then insert or replace its rows by
     image name. Bad rows, or rows naming no uploaded image, reject the whole file (422, one message per
-    row) and leave the stored POS untouched; images without a row are only reported as warnings."""
-    crud.check_inputs_free(session, project.id)  # 409 while a queued or running job uses the POS
+    row) and leave the stored POS untouched; images without a row are only reported as warnings. While
+    a queued or running job uses the POS, a file that would change it is 409 (the same rows again: 200)."""
     data = file.file.read(settings.max_pos_bytes + 1)
     if len(data) > settings.max_pos_bytes:
         raise HTTPException(
@@ -69,6 +69,7 @@ def upload_pos(
     if check.errors:
         raise _unprocessable("POS rows name images that are not uploaded", check.errors)
     names_in_file = {r.name for r in records}  # after bare names were matched to the images
+    before = crud.pos_digest(session, project.id)
     removed = 0
     if replace:
         removed = session.execute(
@@ -81,6 +82,12 @@ def upload_pos(
     except ValueError as e:
         session.rollback()
         raise _unprocessable("invalid POS", [str(e)]) from None
+    if crud.pos_digest(session, project.id) != before:
+        try:
+            crud.check_inputs_free(session, project.id)  # 409 while a queued or running job uses the POS
+        except crud.ConflictError:
+            session.rollback()
+            raise
     session.commit()
     total = len(crud.list_pos_records(session, project.id))
     log.info("project %s: %d POS rows stored from %s (%s)", project.id, stored, source, fmt)

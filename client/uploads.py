@@ -1,0 +1,105 @@
+"""Resumable image uploads through the API's multipart uploads: an image already stored with the same
+digest is skipped, an upload left unfinished by a killed client is resumed from the parts the storage
+holds, and only the missing parts are sent."""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from client.http import ApiError, MidviewClient, Upload
+
+PartCallback = Callable[[str, int, int, int], None]  # (image name, part number, part count, bytes)
+
+
+@dataclass(frozen=True)
+class UploadResult:
+    name: str
+    state: str  # "uploaded", "resumed" (an unfinished upload completed) or "present" (stored already)
+    parts_sent: int
+    part_count: int
+    bytes_sent: int
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _present(name: str, stored_sha256: str, digest: str) -> UploadResult:
+    if stored_sha256 != digest:
+        raise ValueError(
+            f"{name}: the project holds another image of this name (sha256 {stored_sha256[:12]}..., "
+            f"the file's is {digest[:12]}...); use another project or delete the stored image"
+        )
+    return UploadResult(name, "present", 0, 0, 0)
+
+
+def _start_or_resume(
+    mv: MidviewClient, project_id: str, name: str, size: int, digest: str, pending: Upload | None
+) -> tuple[Upload, list[int], bool]:
+    """(upload, part numbers to send, resumed): the unfinished upload of the same file, else a new one."""
+    if pending is not None and pending["size"] == size and pending.get("sha256") in (None, digest):
+        try:
+            parts = mv.upload_parts(project_id, pending["id"])
+            return pending, sorted({*parts["missing"], *parts["wrong_size"]}), True
+        except ApiError as e:
+            if e.status != 404:  # the storage forgot it: start again
+                raise
+    if pending is not None:  # another file's, or gone from the storage
+        mv.abort_upload(project_id, pending["id"])
+    upload = mv.create_upload(project_id, name, size, digest)
+    return upload, list(range(1, upload["part_count"] + 1)), False
+
+
+def upload_image(
+    mv: MidviewClient,
+    project_id: str,
+    name: str,
+    path: Path,
+    stored: dict[str, str] | None = None,
+    pending: dict[str, Upload] | None = None,
+    on_part: PartCallback | None = None,
+) -> UploadResult:
+    """Upload `path` as image `name` (SET/FILE). `stored` ({name: sha256} of the project's images) and
+    `pending` ({name: upload} in progress) save a request per image when the caller lists them once."""
+    digest, size = sha256_file(path), path.stat().st_size
+    if stored is None:
+        stored = {im["name"]: im["sha256"] for im in mv.images(project_id)}
+    if name in stored:
+        return _present(name, stored[name], digest)
+    if pending is None:
+        pending = {u["name"]: u for u in mv.uploads(project_id)}
+    try:
+        upload, todo, resumed = _start_or_resume(mv, project_id, name, size, digest, pending.get(name))
+    except ApiError as e:
+        if e.status != 409:
+            raise
+        if isinstance(e.detail, dict) and e.detail.get("sha256"):  # stored meanwhile
+            return _present(name, e.detail["sha256"], digest)
+        again = {u["name"]: u for u in mv.uploads(project_id)}  # started meanwhile: resume that one
+        upload, todo, resumed = _start_or_resume(mv, project_id, name, size, digest, again.get(name))
+    sent = 0
+    with open(path, "rb") as f:
+        for n in todo:
+            f.seek((n - 1) * upload["part_size"])
+            data = f.read(upload["part_size"])
+            mv.put_part(project_id, upload["id"], n, data)
+            sent += len(data)
+            if on_part is not None:
+                on_part(name, n, upload["part_count"], len(data))
+    try:
+        mv.complete_upload(project_id, upload["id"])
+    except ApiError as e:
+        if e.status != 409:
+            raise
+        image = {im["name"]: im["sha256"] for im in mv.images(project_id)}.get(name)
+        if image is None:
+            raise
+        return _present(name, image, digest)
+    return UploadResult(name, "resumed" if resumed else "uploaded", len(todo), upload["part_count"], sent)
