@@ -93,7 +93,60 @@ class _Progress:
         _echo(f"  {result.state} {result.name} ({self.done}/{self.files}, {pct:.0f}%)")
 
 
+class _BarProgress(_Progress):
+    """SubmitProgress drawing a byte progress bar of the uploads (a terminal)."""
+
+    def __init__(self, bars: Any) -> None:
+        super().__init__()
+        self.bars, self.task = bars, None
+
+    def step(self, message: str) -> None:
+        self.bars.console.print(message)
+
+    def uploads_start(self, files: int, total_bytes: int) -> None:
+        self.files = files
+        self.task = self.bars.add_task(f"uploading {files} images", total=total_bytes)
+
+    def part_sent(self, name: str, number: int, count: int, nbytes: int) -> None:
+        self.bars.update(self.task, advance=nbytes, description=name)
+
+    def file_done(self, result: Any, nbytes: int) -> None:
+        self.done += 1
+        if result.state == "present":  # nothing sent: still counts towards the total
+            self.bars.update(self.task, advance=nbytes)
+        self.bars.update(self.task, description=f"uploaded {self.done}/{self.files}")
+
+
+@contextmanager
+def _progress() -> Iterator[Any]:
+    """A SubmitProgress: a bar on a terminal, one line per event elsewhere (logs, pipes)."""
+    if not sys.stdout.isatty():
+        yield _Progress()
+        return
+    from rich.progress import BarColumn, DownloadColumn, Progress, TaskProgressColumn, TextColumn
+
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(), DownloadColumn()
+    ) as bars:
+        yield _BarProgress(bars)
+
+
+def _follow_bar(mv: Any, job_id: str) -> dict[str, Any]:
+    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn()) as job_bar:
+        task = job_bar.add_task(f"job {job_id[:8]}", total=100.0)
+
+        def show(snap: dict[str, Any]) -> None:
+            desc = f"job {job_id[:8]} {snap['status']} {snap['stage'] or ''}"
+            job_bar.update(task, completed=snap["progress_percent"], description=desc)
+
+        return mv.follow(job_id, on_event=show)
+
+
 def _follow(mv: Any, job_id: str) -> dict[str, Any]:
+    if sys.stdout.isatty():
+        return _follow_bar(mv, job_id)
     last: list[Any] = [None]
 
     def show(snap: dict[str, Any]) -> None:
@@ -135,7 +188,8 @@ def submit(
         crs=crs,
     )
     with _client(server, api_key) as mv:
-        job = submit_survey(mv, survey, key=key, progress=_Progress())
+        with _progress() as progress:
+            job = submit_survey(mv, survey, key=key, progress=progress)
         _echo(f"job {job['id']} (project {survey.name})")
         if not follow:
             return

@@ -88,6 +88,7 @@ ARTIFACTS: dict[str, list[tuple[str, str]]] = {
     "combined_sfm": [
         ("combined/report.json", "report"),
         ("combined/sparse/*", "model"),
+        ("combined/georef.json", "georef"),
         ("combined/gis/*", "gis"),
     ],
     "splat_all": [("splat_all/point_cloud.ply", "splat"), ("splat_all/metrics.json", "metrics")],
