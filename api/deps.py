@@ -96,9 +96,12 @@ def get_current_tenant(
     if scheme.lower() != "bearer" or not token:
         raise _unauthorized("malformed Authorization header (expected 'Bearer <API key>')", "invalid_request")
     key_hash = crud.hash_api_key(token, settings.api_key_pepper)
-    key = session.scalar(sa.select(ApiKey).where(ApiKey.key_hash == key_hash))
-    if key is None:
+    # the key and its tenant in one query: every request pays for it
+    stmt = sa.select(ApiKey, Tenant).join(Tenant, ApiKey.tenant_id == Tenant.id)
+    row = session.execute(stmt.where(ApiKey.key_hash == key_hash)).first()
+    if row is None:
         raise _unauthorized("invalid API key")
+    key, tenant = row
     if key.revoked_at is not None:
         raise _unauthorized("API key revoked")
     wait = request.app.state.rate_limiter.hit(key.id)
@@ -111,7 +114,7 @@ def get_current_tenant(
         )
     request.state.tenant_id = key.tenant_id  # for the request log
     request.state.api_key_prefix = key.prefix
-    return key.tenant
+    return tenant
 
 
 TenantDep = Annotated[Tenant, Depends(get_current_tenant)]
@@ -131,7 +134,7 @@ def get_job(
     job_id: Annotated[str, Path(description="Job id")], tenant: TenantDep, session: SessionDep
 ) -> Job:
     """The tenant's job; 404 when absent or another tenant's."""
-    job = crud.get_job(session, job_id, tenant.id)
+    job = crud.get_job(session, job_id, tenant.id, with_stages=True)
     if job is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
     return job

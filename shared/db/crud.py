@@ -14,7 +14,7 @@ from typing import Any, TypeVar
 
 import sqlalchemy as sa
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, joinedload, selectinload
 
 from shared.config import get_settings
 from shared.db.models import (
@@ -452,9 +452,15 @@ def job_by_key(session: Session, project_id: str, client_key: str) -> Job | None
     return session.scalar(stmt)
 
 
-def get_job(session: Session, job_id: str, tenant_id: str | None = None) -> Job | None:
-    """The job, or None if absent or (with tenant_id) in a project of another tenant."""
-    job = session.get(Job, str(job_id))
+def get_job(
+    session: Session, job_id: str, tenant_id: str | None = None, with_stages: bool = False
+) -> Job | None:
+    """The job, or None if absent or (with tenant_id) in a project of another tenant; its project loaded
+    with it, and with_stages its stage runs (two queries in all: what a status read needs)."""
+    stmt = sa.select(Job).options(joinedload(Job.project)).where(Job.id == str(job_id))
+    if with_stages:
+        stmt = stmt.options(selectinload(Job.stage_runs))
+    job = session.scalar(stmt)
     if job is None or (tenant_id is not None and job.project.tenant_id != str(tenant_id)):
         return None
     return job
