@@ -101,16 +101,19 @@ class BodyLimitMiddleware:
                 await _reply(send, 413, f"request body of {size} bytes is over this route's limit of {limit}")
                 return
         received = 0
-        state: dict[str, Any] = {"started": False, "error": None}
+        state: dict[str, Any] = {"started": False, "error": None, "body_done": False}
 
         async def limited_receive() -> Message:
             nonlocal received
+            if state["body_done"]:  # the body is in; what comes now is the disconnect, whenever it comes
+                return await receive()  # (a streaming response, an event stream, waits for it)
             try:
                 message = await asyncio.wait_for(receive(), self.read_timeout_s)
             except TimeoutError:
                 state["error"] = (408, f"no request body data for {self.read_timeout_s:g} s")
                 raise _ReadTimeout from None
             if message["type"] == "http.request":
+                state["body_done"] = not message.get("more_body", False)
                 received += len(message.get("body", b""))
                 if received > limit:
                     state["error"] = (413, f"request body is over this route's limit of {limit} bytes")

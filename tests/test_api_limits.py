@@ -73,6 +73,28 @@ def test_streamed_body_over_the_limit_is_cut_at_the_limit():
     assert ok[0]["status"] == 200 and ok[1]["body"] == b"121"  # that route's own limit
 
 
+def test_a_stream_outlives_the_read_timeout():
+    """An event stream (GET, no body) waits on receive() for the client's disconnect for as long as it
+    streams: the body read timeout ends with the body. (It cut every job event stream at 30 s.)"""
+    events = []
+
+    async def stream_app(scope, receive, send):
+        await receive()  # the (empty) body
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        waiting = asyncio.ensure_future(receive())  # as Starlette's StreamingResponse: the disconnect
+        for i in range(4):
+            await asyncio.sleep(0.15)
+            assert not waiting.done()
+            await send({"type": "http.response.body", "body": f"event {i}\n".encode(), "more_body": True})
+            events.append(i)
+        waiting.cancel()
+        await send({"type": "http.response.body", "body": b""})
+
+    mw = BodyLimitMiddleware(stream_app, route_limits([], 1000), read_timeout_s=0.2)
+    sent = _run(mw, _http("GET", "/jobs/x/events"), [{"type": "http.request", "body": b""}])
+    assert sent[0]["status"] == 200 and events == [0, 1, 2, 3]  # 0.6 s of stream, past the 0.2 s timeout
+
+
 def test_a_body_that_stops_arriving_is_408():
     mw = BodyLimitMiddleware(_echo_app, route_limits([], 1000), read_timeout_s=0.2)
     t0 = time.perf_counter()
