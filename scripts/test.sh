@@ -12,6 +12,12 @@ if ! command -v docker-compose >/dev/null && command -v apt-get >/dev/null; then
     || (apt-get update -qq && apt-get install -y -qq docker-compose >/dev/null 2>&1)) \
     || echo "test: docker-compose could not be installed; the compose check will be skipped"
 fi
+# headless Chromium and its driver for the dashboard's browser tests (tests/test_dashboard.py)
+if ! { command -v chromium && command -v chromedriver; } >/dev/null && command -v apt-get >/dev/null; then
+  (apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1 \
+    || (apt-get update -qq && apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1)) \
+    || echo "test: chromium could not be installed; the browser tests will be skipped"
+fi
 set +e
 "$VENV/bin/python" -m pytest -ra "$@"
 rc=$?

@@ -1,6 +1,18 @@
 """Routers of the REST API, one module per resource."""
 
-from api.routes import artifacts, cameras, campaigns, health, images, jobs, pos, projects, uploads, webhooks
+from api.routes import (
+    artifacts,
+    cameras,
+    campaigns,
+    health,
+    images,
+    jobs,
+    pos,
+    projects,
+    ui,
+    uploads,
+    webhooks,
+)
 
 ROUTERS = [
     health.router,
@@ -13,6 +25,7 @@ ROUTERS = [
     campaigns.router,
     artifacts.router,
     webhooks.router,
+    ui.router,
 ]
 
 __all__ = ["ROUTERS"]

@@ -1,0 +1,530 @@
+// midview dashboard: a single page on the REST API (no build step). Hash routes:
+//   #/projects  #/projects/{id}  #/jobs/{id}  #/jobs/{id}/map  #/jobs/{id}/ground/{file}
+// The API key lives in sessionStorage and goes in the Authorization header of every request; the job's
+// event stream is read with fetch (EventSource cannot send headers).
+
+const STAGES = ["aerial_sfm", "train_splat", "plan_views", "render_views", "match_views", "reduce", "combined_sfm",
+  "splat_all"];
+const main = document.getElementById("main");
+const nav = document.getElementById("nav");
+let key = sessionStorage.getItem("midview-key");
+let leaving = [];  // cleanups of the current page (event streams)
+
+// -- helpers -------------------------------------------------------------------------------------
+function h(tag, attrs = {}, ...children) {
+  const el = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k.startsWith("on")) el.addEventListener(k.slice(2), v);
+    else if (v !== null && v !== undefined && v !== false) el.setAttribute(k, v === true ? "" : v);
+  }
+  for (const c of children.flat()) if (c !== null && c !== undefined) el.append(c.nodeType ? c : String(c));
+  return el;
+}
+const svgns = "http://www.w3.org/2000/svg";
+function s(tag, attrs = {}) {
+  const el = document.createElementNS(svgns, tag);
+  for (const [k, v] of Object.entries(attrs)) el.setAttribute(k, v);
+  return el;
+}
+function toast(msg) {
+  const t = document.getElementById("toast");
+  t.textContent = msg; t.hidden = false;
+  clearTimeout(toast.timer); toast.timer = setTimeout(() => { t.hidden = true; }, 6000);
+}
+function detail(body) {
+  const d = body && body.detail !== undefined ? body.detail : body;
+  if (typeof d === "string") return d;
+  if (d && d.message) return d.message + (d.errors ? ": " + d.errors.slice(0, 5).join("; ") : "");
+  if (Array.isArray(d)) return d.map((e) => e.msg || JSON.stringify(e)).join("; ");
+  return JSON.stringify(d);
+}
+class ApiError extends Error { constructor(status, body) { super(detail(body)); this.status = status; this.body = body; } }
+async function api(method, path, body, raw = false) {
+  const opts = { method, headers: { Authorization: `Bearer ${key}` } };
+  if (body instanceof FormData) opts.body = body;
+  else if (body !== undefined) { opts.body = JSON.stringify(body); opts.headers["Content-Type"] = "application/json"; }
+  const r = await fetch(path, opts);
+  if (raw) { if (!r.ok) throw new ApiError(r.status, await r.text()); return r; }
+  const text = await r.text();
+  const data = text ? JSON.parse(text) : null;
+  if (!r.ok) throw new ApiError(r.status, data);
+  return data;
+}
+const fmtBytes = (n) => n > 1e6 ? `${(n / 1e6).toFixed(1)} MB` : `${Math.max(1, Math.round(n / 1e3))} kB`;
+const fmtS = (x) => x === null || x === undefined ? "" : x < 60 ? `${x.toFixed(1)} s` : `${(x / 60).toFixed(1)} min`;
+function outcomeText(o) {
+  if (!o || !o.images) return "";
+  const g = o.images.ground !== undefined ? `ground ${o.registered.ground || 0}/${o.images.ground}` : "";
+  const a = o.images.aerial !== undefined ? `aerial ${o.registered.aerial || 0}/${o.images.aerial}` : "";
+  return [g, a].filter(Boolean).join(", ");
+}
+async function authedUrl(path) {  // a blob: URL of an API download (it needs the key)
+  const r = await api("GET", path, undefined, true);
+  return URL.createObjectURL(await r.blob());
+}
+function isApiUrl(url) { return new URL(url, location.href).origin === location.origin; }
+async function downloadArtifact(a) {
+  const url = isApiUrl(a.download_url) ? await authedUrl(a.download_url) : a.download_url;
+  const link = h("a", { href: url, download: a.name.split("/").pop() });
+  document.body.append(link); link.click(); link.remove();
+}
+
+// -- sign in -------------------------------------------------------------------------------------
+function signIn() {
+  nav.replaceChildren();
+  const input = h("input", { type: "password", id: "api-key", placeholder: "mv_…", autocomplete: "off" });
+  const err = h("p", { class: "bad", id: "signin-error" });
+  const form = h("form", { id: "signin", onsubmit: async (e) => {
+    e.preventDefault();
+    key = input.value.trim();
+    try { await api("GET", "/projects"); sessionStorage.setItem("midview-key", key); location.hash = "#/projects"; route(); }
+    catch (x) { err.textContent = `sign in failed: ${x.message}`; key = null; }
+  } }, h("label", { for: "api-key" }, "API key"), input, h("p"), h("button", { type: "submit" }, "Sign in"), err);
+  main.replaceChildren(h("section", {}, h("h1", {}, "Sign in"), form,
+    h("p", { class: "muted" }, "midview serve prints a key at its first start; operators make more with midview admin.")));
+}
+
+// -- projects ------------------------------------------------------------------------------------
+async function projectsPage() {
+  const projects = await api("GET", "/projects");
+  const rows = await Promise.all(projects.map(async (p) => {
+    const jobs = await api("GET", `/projects/${p.id}/jobs`);
+    const last = jobs[jobs.length - 1];
+    return h("tr", { class: "project-row" },
+      h("td", {}, h("a", { href: `#/projects/${p.id}` }, p.name)),
+      h("td", { class: "num" }, jobs.length),
+      h("td", {}, last ? h("a", { href: `#/jobs/${last.id}`, class: `status ${last.status}` }, last.status) : "-"),
+      h("td", { class: "hide-phone" }, last ? outcomeText(last.outcome) : ""),
+      h("td", { class: "muted hide-phone" }, new Date(p.created_at).toLocaleString()));
+  }));
+  const name = h("input", { type: "text", id: "project-name", placeholder: "project name", required: true });
+  const crs = h("input", { type: "text", id: "project-crs", placeholder: "output CRS (optional), e.g. EPSG:32633" });
+  const form = h("form", { id: "create-project", onsubmit: async (e) => {
+    e.preventDefault();
+    try {
+      const p = await api("POST", "/projects", { name: name.value.trim(), ...(crs.value.trim() ? { crs: crs.value.trim() } : {}) });
+      location.hash = `#/projects/${p.id}`;
+    } catch (x) { toast(x.message); }
+  } }, h("div", { class: "grid2" }, name, crs), h("p"), h("button", { type: "submit" }, "Create project"));
+  main.replaceChildren(
+    h("h1", {}, "Projects"),
+    h("section", {}, h("table", { id: "projects" },
+      h("thead", {}, h("tr", {}, h("th", {}, "name"), h("th", { class: "num" }, "jobs"), h("th", {}, "last job"),
+        h("th", { class: "hide-phone" }, "outcome"), h("th", { class: "hide-phone" }, "created"))),
+      h("tbody", {}, rows.length ? rows : h("tr", {}, h("td", { colspan: 5, class: "muted" }, "no projects yet"))))),
+    h("section", {}, h("h2", {}, "New project"), form));
+}
+
+// -- uploads (the API's resumable multipart uploads) -------------------------------------------------
+function putPart(url, blob, auth, onProgress) {  // XHR: fetch has no upload progress
+  return new Promise((resolve, reject) => {
+    const xhr = new XMLHttpRequest();
+    xhr.open("PUT", url);
+    if (auth) xhr.setRequestHeader("Authorization", `Bearer ${key}`);
+    xhr.upload.onprogress = (e) => onProgress(e.loaded);
+    xhr.onload = () => {
+      if (xhr.status !== 200) return reject(new Error(`part upload: HTTP ${xhr.status} ${xhr.responseText.slice(0, 200)}`));
+      resolve(xhr.getResponseHeader("ETag") || JSON.parse(xhr.responseText).etag);
+    };
+    xhr.onerror = () => reject(new Error("part upload: network error"));
+    xhr.send(blob);
+  });
+}
+async function uploadFile(pid, set, file, onProgress) {
+  const name = `${set}/${file.name}`;
+  let up;
+  try { up = await api("POST", `/projects/${pid}/uploads`, { name, size: file.size }); }
+  catch (x) {
+    if (x.status !== 409) throw x;
+    if (x.body && x.body.detail && x.body.detail.sha256) { onProgress(file.size); return "present"; }
+    up = (await api("GET", `/projects/${pid}/uploads`)).find((u) => u.name === name);  // resume it
+    if (!up || up.size !== file.size) throw x;
+  }
+  const parts = await api("GET", `/projects/${pid}/uploads/${up.id}/parts`);
+  const todo = [...new Set([...parts.missing, ...parts.wrong_size])];
+  let done = file.size - todo.reduce((n, k) => n + Math.min(up.part_size, file.size - (k - 1) * up.part_size), 0);
+  onProgress(done);
+  for (const n of todo) {
+    const where = await api("GET", `/projects/${pid}/uploads/${up.id}/parts/${n}`);
+    const blob = file.slice((n - 1) * up.part_size, n * up.part_size);
+    await putPart(where.url, blob, where.needs_auth || isApiUrl(where.url), (b) => onProgress(done + b));
+    done += blob.size;
+  }
+  await api("POST", `/projects/${pid}/uploads/${up.id}/complete`, {});
+  onProgress(file.size);
+  return todo.length < up.part_count ? "resumed" : "uploaded";
+}
+const IMAGE = /\.(jpe?g|png|tiff?)$/i;
+async function filesOf(dataTransfer) {  // files of a drop, folders walked
+  const out = [];
+  async function walk(entry) {
+    if (entry.isFile) out.push(await new Promise((res, rej) => entry.file(res, rej)));
+    else if (entry.isDirectory) {
+      const reader = entry.createReader();
+      for (;;) {
+        const batch = await new Promise((res, rej) => reader.readEntries(res, rej));
+        if (!batch.length) break;
+        for (const e of batch) await walk(e);
+      }
+    }
+  }
+  const entries = [...dataTransfer.items].map((i) => i.webkitGetAsEntry && i.webkitGetAsEntry()).filter(Boolean);
+  if (entries.length) for (const e of entries) await walk(e); else out.push(...dataTransfer.files);
+  return out.filter((f) => IMAGE.test(f.name));
+}
+function uploader(pid, set, onDone) {
+  const list = h("tbody");
+  const total = h("progress", { max: 1, value: 0, id: `${set}-total` });
+  const totalText = h("span", { class: "muted", id: `${set}-total-text` }, "");
+  const input = h("input", { type: "file", multiple: true, accept: "image/*", id: `${set}-files`,
+    onchange: () => run([...input.files]) });
+  const folder = h("input", { type: "file", webkitdirectory: true, id: `${set}-folder`,
+    onchange: () => run([...folder.files].filter((f) => IMAGE.test(f.name))) });
+  const zone = h("div", { class: "drop", id: `${set}-drop`,
+    ondragover: (e) => { e.preventDefault(); zone.classList.add("over"); },
+    ondragleave: () => zone.classList.remove("over"),
+    ondrop: async (e) => { e.preventDefault(); zone.classList.remove("over"); run(await filesOf(e.dataTransfer)); } },
+  `drop ${set} images or folders here`, h("br"), input, h("span", { class: "muted" }, " or a folder: "), folder);
+  async function run(files) {
+    const size = files.reduce((n, f) => n + f.size, 0);
+    const sent = new Map();
+    let ok = 0, failed = 0;
+    const update = () => {
+      const n = [...sent.values()].reduce((a, b) => a + b, 0);
+      total.value = size ? n / size : 1;
+      totalText.textContent = `${ok + failed}/${files.length} files, ${fmtBytes(n)} of ${fmtBytes(size)}` + (failed ? `, ${failed} failed` : "");
+    };
+    const queue = files.map((f) => {
+      const bar = h("progress", { max: f.size || 1, value: 0 });
+      const state = h("td", { class: "muted" }, "waiting");
+      list.append(h("tr", { class: "upload-row" }, h("td", {}, f.name), h("td", { class: "num hide-phone" }, fmtBytes(f.size)), h("td", {}, bar), state));
+      return { f, bar, state };
+    });
+    const worker = async () => {
+      for (let item = queue.shift(); item; item = queue.shift()) {
+        try {
+          const how = await uploadFile(pid, set, item.f, (b) => { item.bar.value = b; sent.set(item.f, b); update(); });
+          item.state.textContent = how; item.state.className = "ok"; ok++;
+        } catch (x) { item.state.textContent = x.message; item.state.className = "bad"; failed++; }
+        update();
+      }
+    };
+    await Promise.all([worker(), worker(), worker()]);
+    onDone();
+  }
+  return h("div", {}, h("h2", {}, `${set} images`), zone, h("p"), total, totalText,
+    h("table", { id: `${set}-uploads` }, list));
+}
+
+// -- a project ---------------------------------------------------------------------------------------
+async function projectPage(pid) {
+  const p = await api("GET", `/projects/${pid}`);
+  const jobs = await api("GET", `/projects/${pid}/jobs`);
+  nav.replaceChildren(h("a", { href: "#/projects" }, "projects"), h("span", {}, p.name));
+  const counts = h("p", { id: "image-counts" }, `${p.images.aerial} aerial, ${p.images.ground} ground images, ${p.pos_records} POS rows`);
+  const refresh = async () => {
+    const q = await api("GET", `/projects/${pid}`);
+    counts.textContent = `${q.images.aerial} aerial, ${q.images.ground} ground images, ${q.pos_records} POS rows`;
+  };
+  const posResult = h("div", { id: "pos-result" });
+  const posInput = h("input", { type: "file", id: "pos-file", onchange: async () => {
+    const form = new FormData(); form.append("file", posInput.files[0]);
+    posResult.replaceChildren();
+    try {
+      const r = await api("POST", `/projects/${pid}/pos`, form);
+      posResult.append(h("p", { class: "ok" }, `${r.stored} rows stored (${r.format}), ${r.total} in all`),
+        r.warnings.length ? h("ul", { class: "errors warn" }, r.warnings.slice(0, 50).map((w) => h("li", {}, w))) : "");
+      refresh();
+    } catch (x) {
+      const errs = (x.body && x.body.detail && x.body.detail.errors) || [];
+      posResult.append(h("p", { class: "bad" }, x.message.split(":")[0]), h("ul", { class: "errors" }, errs.slice(0, 100).map((e) => h("li", {}, e))));
+    }
+  } });
+  const camInput = h("input", { type: "file", id: "cameras-file", accept: ".json", onchange: async () => {
+    try { await api("PUT", `/projects/${pid}/cameras`, JSON.parse(await camInput.files[0].text())); toast("cameras.json stored"); }
+    catch (x) { toast(`cameras.json: ${x.message}`); }
+  } });
+  const options = h("textarea", { id: "job-options", spellcheck: "false" }, "{}");
+  const start = h("button", { id: "start-job", onclick: async () => {
+    try {
+      const job = await api("POST", `/projects/${pid}/jobs`, { options: JSON.parse(options.value || "{}") });
+      location.hash = `#/jobs/${job.id}`;
+    } catch (x) { toast(`job: ${x.message}`); }
+  } }, "Start job");
+  main.replaceChildren(
+    h("h1", {}, p.name), counts,
+    h("section", { class: "grid2" }, uploader(pid, "aerial", refresh), uploader(pid, "ground", refresh)),
+    h("section", { class: "grid2" },
+      h("div", {}, h("h2", {}, "POS"), h("p", { class: "muted" }, "CSV, ODM geo.txt or JSON; every row is checked before it is stored"), posInput, posResult),
+      h("div", {}, h("h2", {}, "Intrinsics"), h("p", { class: "muted" }, "cameras.json (optional with EXIF focal lengths)"), camInput)),
+    h("section", {}, h("h2", {}, "New job"), h("p", { class: "muted" }, "job options as JSON (GET /options lists them)"), options, h("p"), start),
+    h("section", {}, h("h2", {}, "Jobs"), h("table", { id: "jobs" }, h("tbody", {}, jobs.map((j) => h("tr", {},
+      h("td", {}, h("a", { href: `#/jobs/${j.id}` }, j.id.slice(0, 8))), h("td", { class: `status ${j.status}` }, j.status),
+      h("td", {}, outcomeText(j.outcome)), h("td", { class: "muted hide-phone" }, new Date(j.created_at).toLocaleString())))))));
+}
+
+// -- a job ---------------------------------------------------------------------------------------------
+async function follow(jobId, onEvent) {  // the job's server-sent events, read with fetch; reconnects
+  const ctrl = new AbortController();
+  leaving.push(() => ctrl.abort());
+  for (let wait = 500; !ctrl.signal.aborted; wait = Math.min(2 * wait, 10000)) {
+    try {
+      const r = await fetch(`/jobs/${jobId}/events`, { headers: { Authorization: `Bearer ${key}` }, signal: ctrl.signal });
+      if (!r.ok) throw new Error(`event stream: HTTP ${r.status}`);
+      const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
+      let buf = "";
+      for (;;) {
+        const { value, done } = await reader.read();
+        if (done) break;
+        buf += value;
+        let i;
+        while ((i = buf.indexOf("\n\n")) >= 0) {
+          const block = buf.slice(0, i); buf = buf.slice(i + 2);
+          const ev = /^event: (.*)$/m.exec(block), data = /^data: (.*)$/m.exec(block);
+          if (!ev || !data) continue;
+          wait = 500;
+          await onEvent(ev[1], JSON.parse(data[1]));
+          if (ev[1] === "end" || ev[1] === "error") return;
+        }
+      }
+    } catch (x) { if (x.name === "AbortError") return; console.warn(x.message); }
+    await new Promise((res) => setTimeout(res, wait));  // dropped before its end: the next stream starts with the job's state
+  }
+}
+function jobNav(job, project) {
+  nav.replaceChildren(h("a", { href: "#/projects" }, "projects"), h("a", { href: `#/projects/${job.project_id}` }, project.name),
+    h("a", { href: `#/jobs/${job.id}` }, `job ${job.id.slice(0, 8)}`), h("a", { href: `#/jobs/${job.id}/map`, id: "map-link" }, "map"),
+    h("a", { href: `#/jobs/${job.id}/3d`, id: "view3d-link" }, "3D"));
+}
+function stageRows(job) {
+  const wanted = (job.options && job.options.stages) || STAGES.slice(0, 7);
+  const runs = job.stages.filter((r) => r.attempt === job.attempt);
+  return wanted.map((st) => {
+    const run = [...runs].reverse().find((r) => r.stage === st);
+    const status = run ? run.status : (job.status === "queued" || job.status === "running" ? "pending" : "-");
+    const value = run && ["succeeded", "skipped"].includes(run.status) ? 1 : (job.current_stage === st ? null : 0);
+    const bar = h("progress", { max: 1, ...(value === null ? {} : { value }), "data-stage": st });
+    return h("tr", { class: "stage-row", "data-stage": st }, h("td", {}, st), h("td", { class: `status ${status}` }, status),
+      h("td", {}, bar), h("td", { class: "num" }, run ? fmtS(run.duration_s) : ""),
+      h("td", { class: "bad" }, run && run.error ? run.error.slice(0, 300) : ""));
+  });
+}
+async function jobPage(jobId) {
+  let job = await api("GET", `/jobs/${jobId}`);
+  const project = await api("GET", `/projects/${job.project_id}`);
+  jobNav(job, project);
+  const status = h("span", { id: "job-status", class: `status ${job.status}` }, job.status);
+  const overall = h("progress", { id: "job-progress", max: 100, value: job.progress_percent });
+  const pct = h("span", { id: "job-percent" }, `${job.progress_percent.toFixed(0)}%`);
+  const stages = h("tbody", { id: "stages" }, stageRows(job));
+  const log = h("div", { class: "log", id: "job-log" });
+  const outcome = h("p", { id: "job-outcome" });
+  const arts = h("tbody", { id: "artifacts" });
+  const cancel = h("button", { class: "secondary", id: "cancel-job", onclick: async () => {
+    try { await api("POST", `/jobs/${jobId}/cancel`); } catch (x) { toast(x.message); }
+  } }, "Cancel");
+  const from = h("select", { id: "rerun-from" }, h("option", { value: "" }, "from the start"),
+    ((job.options && job.options.stages) || STAGES.slice(0, 7)).map((st) => h("option", { value: st }, `from ${st}`)));
+  const rerun = h("button", { class: "secondary", id: "rerun-job", onclick: async () => {
+    try { await api("POST", `/jobs/${jobId}/rerun`, { from_stage: from.value || null }); jobPage(jobId); } catch (x) { toast(x.message); }
+  } }, "Rerun");
+  const logLine = (t) => { log.append(`${new Date().toLocaleTimeString()}  ${t}\n`); log.scrollTop = log.scrollHeight; };
+  const render = async () => {
+    status.textContent = job.status; status.className = `status ${job.status}`;
+    overall.value = job.progress_percent; pct.textContent = `${job.progress_percent.toFixed(0)}%`;
+    stages.replaceChildren(...stageRows(job));
+    const final = ["succeeded", "failed", "cancelled"].includes(job.status);
+    cancel.disabled = final; rerun.disabled = !final;
+    outcome.replaceChildren(job.outcome ? `${outcomeText(job.outcome)} ${job.outcome.warnings.length ? "— " + job.outcome.warnings.join("; ") : ""}` : "",
+      job.error ? h("span", { class: "bad" }, job.error) : "");
+    if (final) {
+      const list = await api("GET", `/jobs/${jobId}/artifacts`);
+      arts.replaceChildren(...list.map((a) => h("tr", { class: "artifact-row" }, h("td", {}, a.name), h("td", { class: "muted hide-phone" }, a.kind),
+        h("td", { class: "num" }, a.size_bytes ? fmtBytes(a.size_bytes) : ""),
+        h("td", {}, h("button", { class: "link", onclick: () => downloadArtifact(a).catch((x) => toast(x.message)) }, "download")))));
+    }
+  };
+  main.replaceChildren(
+    h("h1", {}, `Job ${jobId.slice(0, 8)} of ${project.name}`),
+    h("section", {}, h("div", { class: "row" }, status, pct, cancel, from, rerun), h("p"), overall, outcome,
+      h("table", {}, h("thead", {}, h("tr", {}, h("th", {}, "stage"), h("th", {}, "status"), h("th", {}, "progress"), h("th", { class: "num" }, "time"), h("th", {}, ""))), stages)),
+    h("section", {}, h("h2", {}, "Log"), log),
+    h("section", {}, h("h2", {}, "Results"), h("table", {}, arts)));
+  await render();
+  let lastStage = job.current_stage;
+  follow(jobId, async (ev, data) => {
+    if (ev === "progress") {
+      if (data.stage !== lastStage || data.status !== job.status) logLine(`${data.status} ${data.stage || ""}`);
+      const refetch = data.stage !== lastStage || data.status !== job.status;
+      lastStage = data.stage;
+      job = { ...job, status: data.status, current_stage: data.stage, progress_percent: data.progress_percent,
+        outcome: data.outcome, error: data.error };
+      if (refetch) job = await api("GET", `/jobs/${jobId}`);
+      await render();
+    } else if (ev === "end") {
+      logLine(`end: ${data.status}`);
+      job = await api("GET", `/jobs/${jobId}`); await render();
+    }
+  });
+}
+
+// -- the map and the ground images -----------------------------------------------------------------
+async function camerasOf(jobId) {  // the GeoJSON layer of the combined model's cameras, or null
+  const arts = await api("GET", `/jobs/${jobId}/artifacts`);
+  const a = arts.find((x) => x.name === "combined/gis/cameras.geojson");
+  if (!a) return null;
+  const r = isApiUrl(a.download_url) ? await api("GET", a.download_url, undefined, true) : await fetch(a.download_url);
+  return r.json();
+}
+async function mapPage(jobId) {
+  const job = await api("GET", `/jobs/${jobId}`);
+  const project = await api("GET", `/projects/${job.project_id}`);
+  jobNav(job, project);
+  const [gj, pos] = await Promise.all([camerasOf(jobId), api("GET", `/projects/${job.project_id}/pos`)]);
+  if (!gj) { main.replaceChildren(h("section", {}, h("p", {}, "no cameras layer yet: the job has not finished its combined SfM"))); return; }
+  const posBy = Object.fromEntries(pos.map((r) => [r.image_name, r]));
+  const pts = gj.features.map((f) => ({ p: f.properties, lon: f.geometry.coordinates[0], lat: f.geometry.coordinates[1] }));
+  const all = [...pts.filter((q) => q.p.registered), ...pos.map((r) => ({ lon: r.lon, lat: r.lat }))];
+  const lat0 = all.reduce((a, q) => a + q.lat, 0) / all.length, lon0 = all.reduce((a, q) => a + q.lon, 0) / all.length;
+  const xy = (lon, lat) => [(lon - lon0) * 111320 * Math.cos((lat0 * Math.PI) / 180), (lat - lat0) * 110540];
+  const P = all.map((q) => xy(q.lon, q.lat));
+  const xs = P.map((q) => q[0]), ys = P.map((q) => q[1]);
+  const pad = 10, x0 = Math.min(...xs) - pad, x1 = Math.max(...xs) + pad, y0 = Math.min(...ys) - pad, y1 = Math.max(...ys) + pad;
+  const W = 1000, scale = W / Math.max(x1 - x0, 1), H = Math.max(200, (y1 - y0) * scale);
+  const map = s("svg", { class: "map", id: "map", viewBox: `0 0 ${W} ${H}` });
+  const sx = (x) => (x - x0) * scale, sy = (y) => H - (y - y0) * scale;
+  for (let m = 10; m * scale < W / 4; m *= 2) { if (m * scale > W / 12) { // scale bar
+    map.append(s("line", { x1: 20, y1: H - 20, x2: 20 + m * scale, y2: H - 20, stroke: "#333", "stroke-width": 3 }));
+    const t = s("text", { x: 20, y: H - 28, "font-size": 14 }); t.textContent = `${m} m`; map.append(t); break; } }
+  const colour = (q) => q.p.set === "aerial" ? "#2457c5" : q.p.registered ? "#1a7f37" : "#c62828";
+  for (const q of pts) {
+    const r = posBy[q.p.name];
+    const [px, py] = r ? xy(r.lon, r.lat) : [null, null];
+    if (r) map.append(s("circle", { cx: sx(px), cy: sy(py), r: 5, fill: "none", stroke: "#98a2b3", class: "pos" }));
+    if (!q.p.registered) continue;
+    const [cx, cy] = xy(q.lon, q.lat);
+    if (r) map.append(s("line", { x1: sx(px), y1: sy(py), x2: sx(cx), y2: sy(cy), stroke: "#e8890c", "stroke-width": 1.5, class: "error-line" }));
+    const c = s("circle", { cx: sx(cx), cy: sy(cy), r: q.p.set === "ground" ? 6 : 4, fill: colour(q), class: `cam ${q.p.set}` });
+    const title = s("title"); title.textContent = `${q.p.name}: ${q.p.to_pos_m !== null ? q.p.to_pos_m.toFixed(2) + " m from its POS" : ""}`;
+    c.append(title); map.append(c);
+  }
+  for (const q of pts.filter((q) => q.p.set === "ground" && !q.p.registered && posBy[q.p.name])) {
+    const [px, py] = xy(posBy[q.p.name].lon, posBy[q.p.name].lat);
+    map.append(s("circle", { cx: sx(px), cy: sy(py), r: 6, fill: "#c62828", class: "cam ground unregistered" }));
+  }
+  const ground = pts.filter((q) => q.p.set === "ground");
+  main.replaceChildren(
+    h("h1", {}, `Map of job ${jobId.slice(0, 8)}`),
+    h("section", {}, h("div", { class: "legend" }, h("span", {}, h("i", { class: "dot", style: "background:#2457c5" }), "aerial, registered"),
+      h("span", {}, h("i", { class: "dot", style: "background:#1a7f37" }), "ground, registered"),
+      h("span", {}, h("i", { class: "dot", style: "background:#c62828" }), "ground, not registered (at its POS)"),
+      h("span", {}, h("i", { class: "dot", style: "border:1px solid #98a2b3" }), "POS; orange: POS to registered position")), map),
+    h("section", {}, h("h2", {}, `Ground images (${ground.filter((q) => q.p.registered).length} of ${ground.length} registered)`),
+      h("table", { id: "ground-images" }, h("thead", {}, h("tr", {}, h("th", {}, "image"), h("th", {}, "registered"), h("th", { class: "num" }, "to POS"), h("th", { class: "num hide-phone" }, "σ"), h("th", {}, "reason"))),
+        h("tbody", {}, ground.map((q) => h("tr", { class: "ground-row" },
+          h("td", {}, h("a", { href: `#/jobs/${jobId}/ground/${encodeURIComponent(q.p.name.split("/")[1])}` }, q.p.name)),
+          h("td", { class: q.p.registered ? "ok" : "bad" }, q.p.registered ? "yes" : "no"),
+          h("td", { class: "num" }, q.p.to_pos_m !== null ? `${q.p.to_pos_m.toFixed(2)} m` : ""),
+          h("td", { class: "num hide-phone" }, q.p.position_std_m !== null ? `${q.p.position_std_m.toFixed(2)} m` : ""),
+          h("td", {}, q.p.reason || "")))))));
+}
+function loadImage(url) { return new Promise((res, rej) => { const im = new Image(); im.onload = () => res(im); im.onerror = rej; im.src = url; }); }
+async function drawPair(canvas, jobId, pid, pair) {
+  const m = await api("GET", `/jobs/${jobId}/pairs/aerial/${encodeURIComponent(pair.aerial.split("/")[1])}/ground/${encodeURIComponent(pair.ground.split("/")[1])}`);
+  const [A, G] = await Promise.all([pair.aerial, pair.ground].map(async (n) => loadImage(await authedUrl(`/projects/${pid}/images/${n}/download`))));
+  const k = G.height / A.height;  // the aerial image scaled to the ground image's height, side by side
+  canvas.width = A.width * k + G.width; canvas.height = G.height;
+  const ctx = canvas.getContext("2d");
+  ctx.drawImage(A, 0, 0, A.width * k, G.height); ctx.drawImage(G, A.width * k, 0);
+  m.aerial_xy.forEach(([ax, ay], i) => {
+    const [gx, gy] = m.ground_xy[i];
+    ctx.strokeStyle = m.inliers ? (m.inliers[i] ? "#22c55e" : "#ef4444") : "#facc15";
+    ctx.beginPath(); ctx.moveTo(ax * k, ay * k); ctx.lineTo(A.width * k + gx, gy); ctx.stroke();
+  });
+  return m;
+}
+async function groundPage(jobId, file) {
+  const job = await api("GET", `/jobs/${jobId}`);
+  const project = await api("GET", `/projects/${job.project_id}`);
+  jobNav(job, project);
+  const name = `ground/${file}`;
+  const gj = await camerasOf(jobId);
+  const me = gj ? gj.features.find((f) => f.properties.name === name) : null;
+  let pairs = [];
+  try { pairs = (await api("GET", `/jobs/${jobId}/pairs?limit=10000`)).pairs.filter((p) => p.ground === name); }
+  catch (x) { if (x.status !== 404 && x.status !== 422) throw x; }
+  pairs.sort((a, b) => (b.num_inliers ?? b.num_matches) - (a.num_inliers ?? a.num_matches));
+  const photo = h("img", { class: "photo", id: "ground-photo", alt: name, src: await authedUrl(`/projects/${job.project_id}/images/${name}/download`) });
+  const canvas = h("canvas", { class: "matches", id: "pair-canvas" });
+  const pairInfo = h("p", { class: "muted", id: "pair-info" });
+  const show = async (p) => {
+    try { const m = await drawPair(canvas, jobId, job.project_id, p); pairInfo.textContent = `${p.aerial}: ${m.num_matches} matches` + (m.inliers ? `, ${m.inliers.filter(Boolean).length} verified (green)` : ""); }
+    catch (x) { pairInfo.textContent = x.message; }
+  };
+  const p = me ? me.properties : null;
+  main.replaceChildren(
+    h("h1", {}, name),
+    h("section", { class: "grid2" }, photo, h("div", {}, h("h2", {}, "Pose"),
+      p ? h("table", { id: "pose" }, h("tbody", {},
+        h("tr", {}, h("th", {}, "registered"), h("td", { class: p.registered ? "ok" : "bad", id: "pose-registered" }, p.registered ? `yes (${p.registered_by || ""})` : "no")),
+        p.reason ? h("tr", {}, h("th", {}, "reason"), h("td", { id: "pose-reason" }, p.reason)) : "",
+        p.to_pos_m !== null ? h("tr", {}, h("th", {}, "distance to its POS"), h("td", {}, `${p.to_pos_m.toFixed(2)} m`)) : "",
+        p.heading !== null ? h("tr", {}, h("th", {}, "heading / pitch / roll"), h("td", {}, `${p.heading.toFixed(1)}° / ${p.pitch.toFixed(1)}° / ${p.roll.toFixed(1)}°`)) : ""))
+        : h("p", { class: "muted" }, "the job has no combined model yet"))),
+    h("section", {}, h("h2", {}, `Aerial images matched (${pairs.length})`),
+      h("table", { id: "pairs" }, h("tbody", {}, pairs.map((q) => h("tr", { class: "pair-row" },
+        h("td", {}, h("button", { class: "link", onclick: () => show(q) }, q.aerial)),
+        h("td", { class: "num" }, `${q.num_matches} matches`), h("td", { class: "num" }, q.num_inliers !== null ? `${q.num_inliers} verified` : ""))))),
+      pairInfo, canvas));
+  canvas.hidden = !pairs.length;
+  if (pairs.length) show(pairs[0]);
+}
+
+// -- the 3D view -------------------------------------------------------------------------------------
+async function artifactBytes(jobId, name) {
+  const a = (await api("GET", `/jobs/${jobId}/artifacts`)).find((x) => x.name === name);
+  if (!a) return null;
+  const r = isApiUrl(a.download_url) ? await api("GET", a.download_url, undefined, true) : await fetch(a.download_url);
+  return r.arrayBuffer();
+}
+async function page3d(jobId) {
+  const job = await api("GET", `/jobs/${jobId}`);
+  const project = await api("GET", `/projects/${job.project_id}`);
+  jobNav(job, project);
+  const box = h("div", { id: "view3d" });
+  const info = h("p", { class: "muted", id: "view3d-info" }, "loading the combined model…");
+  main.replaceChildren(h("h1", {}, `3D model of job ${jobId.slice(0, 8)}`), h("section", {}, info, box,
+    h("p", { class: "muted" }, "drag to turn, wheel to zoom; blue: aerial cameras, green: ground cameras (their viewing direction)")));
+  const [las, opk] = await Promise.all([artifactBytes(jobId, "combined/gis/points.las"), artifactBytes(jobId, "combined/gis/cameras_opk.txt")]);
+  if (!las || !opk) { info.textContent = "no combined model yet"; return; }
+  let view;
+  try { view = await import("./view3d.js"); }
+  catch (x) { info.textContent = `the 3D library is not installed (scripts/setup.sh installs it): ${x.message}`; return; }
+  const points = view.parseLas(las), cams = view.parseOpk(new TextDecoder().decode(opk));
+  info.textContent = `${points.count} points, ${cams.filter((c) => c.set === "aerial").length} aerial and ${cams.filter((c) => c.set === "ground").length} ground cameras`;
+  if (!view.webglAvailable()) { info.textContent += " — this browser has no WebGL to draw them"; window.midview3d = { points: points.count, cameras: cams.length, webgl: false }; return; }
+  leaving.push(view.draw(box, points, cams));
+}
+
+// -- router ----------------------------------------------------------------------------------------
+async function route() {
+  for (const f of leaving) f();
+  leaving = [];
+  document.getElementById("signout").hidden = !key;
+  if (!key) return signIn();
+  const parts = location.hash.replace(/^#\/?/, "").split("/").map(decodeURIComponent);
+  try {
+    if (parts[0] === "projects" && parts[1]) await projectPage(parts[1]);
+    else if (parts[0] === "jobs" && parts[2] === "map") await mapPage(parts[1]);
+    else if (parts[0] === "jobs" && parts[2] === "3d") await page3d(parts[1]);
+    else if (parts[0] === "jobs" && parts[2] === "ground") await groundPage(parts[1], parts.slice(3).join("/"));
+    else if (parts[0] === "jobs" && parts[1]) await jobPage(parts[1]);
+    else { nav.replaceChildren(h("a", { href: "#/projects" }, "projects")); await projectsPage(); }
+  } catch (x) {
+    if (x.status === 401) { sessionStorage.removeItem("midview-key"); key = null; return signIn(); }
+    main.replaceChildren(h("section", {}, h("p", { class: "bad", id: "page-error" }, x.message)));
+  }
+}
+document.getElementById("signout").addEventListener("click", () => { sessionStorage.removeItem("midview-key"); key = null; route(); });
+window.addEventListener("hashchange", route);
+route();

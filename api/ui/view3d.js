@@ -1,0 +1,91 @@
+// The 3D view of a job: the combined model's points (combined/gis/points.las) and cameras
+// (combined/gis/cameras_opk.txt), both in the job's output CRS, drawn with three.js (installed from the
+// npm registry by scripts/setup.sh). window.midview3d reports what was drawn (the browser tests read it).
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+
+/** {xyz: Float32Array(3n), rgb: Float32Array(3n), count} of a LAS 1.4 file (point formats 6-8: RGB at 30). */
+export function parseLas(buf) {
+  const v = new DataView(buf);
+  const magic = String.fromCharCode(v.getUint8(0), v.getUint8(1), v.getUint8(2), v.getUint8(3));
+  if (magic !== "LASF") throw new Error("not a LAS file");
+  const offset = v.getUint32(96, true), format = v.getUint8(104) & 0x3f, length = v.getUint16(105, true);
+  const count = Number(v.getBigUint64(247, true));
+  const scale = [0, 1, 2].map((i) => v.getFloat64(131 + 8 * i, true));
+  const origin = [0, 1, 2].map((i) => v.getFloat64(155 + 8 * i, true));
+  const xyz = new Float64Array(3 * count), rgb = new Float32Array(3 * count);
+  const colour = format >= 7 ? 30 : -1;
+  for (let i = 0; i < count; i++) {
+    const o = offset + i * length;
+    for (let k = 0; k < 3; k++) xyz[3 * i + k] = v.getInt32(o + 4 * k, true) * scale[k] + origin[k];
+    for (let k = 0; k < 3; k++) rgb[3 * i + k] = colour >= 0 ? v.getUint16(o + colour + 2 * k, true) / 65535 : 0.7;
+  }
+  return { xyz, rgb, count };
+}
+
+/** [{name, set, c: [x, y, z], view: [dx, dy, dz]}] of an omega/phi/kappa file (degrees; camera looks along -z). */
+export function parseOpk(text) {
+  const rad = Math.PI / 180;
+  return text.split("\n").filter((l) => l.trim() && !l.startsWith("#")).map((l) => {
+    const [name, x, y, z, o, p, k] = l.trim().split(/\s+/);
+    const [w, f, q] = [o, p, k].map((a) => Number(a) * rad);
+    // the third column of Rx(w) Ry(f) Rz(q), negated
+    const r02 = Math.sin(f), r12 = -Math.sin(w) * Math.cos(f), r22 = Math.cos(w) * Math.cos(f);
+    void q;
+    return { name, set: name.split("/")[0], c: [Number(x), Number(y), Number(z)], view: [-r02, -r12, -r22] };
+  });
+}
+
+export function webglAvailable() {
+  try { const c = document.createElement("canvas"); return !!(c.getContext("webgl2") || c.getContext("webgl")); }
+  catch { return false; }
+}
+
+/** Draw points and cameras into `container`; returns a function that stops the rendering. */
+export function draw(container, las, cams) {
+  const n = las.count;
+  const centre = [0, 1, 2].map((k) => { let s = 0; for (let i = 0; i < n; i++) s += las.xyz[3 * i + k]; return n ? s / n : 0; });
+  const pos = new Float32Array(3 * n);
+  for (let i = 0; i < 3 * n; i++) pos[i] = las.xyz[i] - centre[i % 3];
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(0xf3f4f6);
+  const geom = new THREE.BufferGeometry();
+  geom.setAttribute("position", new THREE.BufferAttribute(pos, 3));
+  geom.setAttribute("color", new THREE.BufferAttribute(las.rgb, 3));
+  scene.add(new THREE.Points(geom, new THREE.PointsMaterial({ size: 2, sizeAttenuation: false, vertexColors: true })));
+  let extent = 1;
+  for (let i = 0; i < 3 * n; i++) extent = Math.max(extent, Math.abs(pos[i]));
+  const lines = [], colours = [];
+  for (const cam of cams) {
+    const c = cam.c.map((x, k) => x - centre[k]);
+    const len = extent * 0.05;
+    lines.push(...c, ...c.map((x, k) => x + cam.view[k] * len));
+    const col = cam.set === "aerial" ? [0.14, 0.34, 0.77] : [0.1, 0.5, 0.22];
+    colours.push(...col, ...col);
+  }
+  const lg = new THREE.BufferGeometry();
+  lg.setAttribute("position", new THREE.BufferAttribute(new Float32Array(lines), 3));
+  lg.setAttribute("color", new THREE.BufferAttribute(new Float32Array(colours), 3));
+  scene.add(new THREE.LineSegments(lg, new THREE.LineBasicMaterial({ vertexColors: true })));
+  const camMarkers = new THREE.BufferGeometry();
+  camMarkers.setAttribute("position", new THREE.BufferAttribute(new Float32Array(cams.flatMap((c) => c.c.map((x, k) => x - centre[k]))), 3));
+  camMarkers.setAttribute("color", new THREE.BufferAttribute(new Float32Array(cams.flatMap((c) => c.set === "aerial" ? [0.14, 0.34, 0.77] : [0.1, 0.5, 0.22])), 3));
+  scene.add(new THREE.Points(camMarkers, new THREE.PointsMaterial({ size: 7, sizeAttenuation: false, vertexColors: true })));
+
+  const width = container.clientWidth || 800, height = Math.max(320, Math.min(640, width * 0.6));
+  const renderer = new THREE.WebGLRenderer({ antialias: true });
+  renderer.setPixelRatio(window.devicePixelRatio || 1);
+  renderer.setSize(width, height);
+  container.append(renderer.domElement);
+  const camera = new THREE.PerspectiveCamera(50, width / height, extent / 1000, extent * 20);
+  camera.up.set(0, 0, 1);  // the output CRS: z up
+  camera.position.set(extent * 1.2, -extent * 1.6, extent * 1.4);
+  const controls = new OrbitControls(camera, renderer.domElement);
+  controls.target.set(0, 0, 0);
+  let running = true;
+  const loop = () => { if (!running) return; controls.update(); renderer.render(scene, camera); requestAnimationFrame(loop); };
+  loop();
+  window.midview3d = { points: n, cameras: cams.length, aerial: cams.filter((c) => c.set === "aerial").length,
+    ground: cams.filter((c) => c.set === "ground").length, canvas: renderer.domElement };
+  return () => { running = false; renderer.dispose(); };
+}

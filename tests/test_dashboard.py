@@ -1,0 +1,285 @@
+"""The web dashboard in a real browser: headless Chromium (Debian's package) driven by Selenium against
+`midview serve` (SQLite, local storage, the embedded worker) in its own process. Signs in, creates a
+project, uploads a survey through the page's file inputs (the API's multipart uploads), checks the POS,
+starts a job and watches it to the end through the event stream, opens the map and a ground image's
+page, and checks what they show; then the same pages 390 px wide. Screenshots go to
+runs/test-artifacts/dashboard/ (or MIDVIEW_TEST_ARTIFACTS); the browser console must stay free of errors.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+KEY = "mv_dashboardtestkey0123456789abcdef"
+OPTIONS = {"sfm_features": "sift", "matcher": "aliked-lightglue", "view_planner": "both",
+           "views_per_ground_image": 1, "splat_steps": 1000, "splat_max_width": 240, "max_keypoints": 1024,
+           "seed": 0}  # fmt: skip
+JOB_TIMEOUT_S = 600
+# the cells' texts of the rows a selector finds, read at once
+ROWS = (
+    "return [...document.querySelectorAll(arguments[0])].map((r) => [...r.cells].map((c) => c.textContent))"
+)
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory) -> Path:
+    """`tiny` with 2 x 2 aerial stations: 20 aerial, 4 ground images."""
+    from services import synth
+
+    conf = copy.deepcopy(synth.confs["tiny"])
+    conf["aerial"]["grid"] = [2, 2]
+    return synth.main(conf, tmp_path_factory.mktemp("survey") / "tiny22", seed=0)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """`midview serve` on a free port with a known API key; its base URL."""
+    import httpx
+    from servers import free_ports
+
+    (port,) = free_ports(1)
+    folder = tmp_path_factory.mktemp("serve")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
+    env.update(
+        MIDVIEW_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", MIDVIEW_EVENTS_POLL_S="0.2"
+    )
+    exe = Path(sys.executable).with_name("midview")
+    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "cli.main"]
+    log = open(folder / "serve.log", "wb")
+    args = [*cmd, "serve", "--port", str(port), "--data-dir", str(folder / "data"), "--api-key", KEY]
+    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert proc.poll() is None and time.monotonic() < deadline, (folder / "serve.log").read_text()[
+                -3000:
+            ]
+            time.sleep(0.3)
+        yield base
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not (CHROMIUM and DRIVER):
+        pytest.skip("needs Debian's chromium and chromium-driver (scripts/test.sh installs them)")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    quiet = ("--disable-background-networking", "--disable-component-update", "--disable-sync")
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1280,800", *quiet,
+                "--no-first-run", "--enable-unsafe-swiftshader"):  # fmt: skip
+        opts.add_argument(arg)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver = webdriver.Chrome(options=opts, service=Service(DRIVER))
+    driver.set_window_size(1280, 800)
+    yield driver
+    driver.quit()
+
+
+@pytest.fixture(scope="module")
+def shots() -> Path:
+    folder = Path(os.environ.get("MIDVIEW_TEST_ARTIFACTS", ROOT / "runs" / "test-artifacts")) / "dashboard"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _wait(driver, check, timeout=30.0, what="condition"):
+    """check(driver) until truthy; its value."""
+    from selenium.common.exceptions import StaleElementReferenceException, WebDriverException
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            value = check(driver)
+            if value:
+                return value
+        except (StaleElementReferenceException, WebDriverException):
+            pass
+        if time.monotonic() > deadline:
+            raise AssertionError(
+                f"timed out waiting for {what}: {driver.current_url}\n{_text(driver)[:3000]}"
+            )
+        time.sleep(0.2)
+
+
+def urlopen_json(server: str, driver) -> str:
+    """The combined report of the job on the page, read through the API with the test's key."""
+    import httpx
+
+    job_id = driver.current_url.split("#/jobs/")[1].split("/")[0]
+    headers = {"Authorization": f"Bearer {KEY}"}
+    arts = httpx.get(f"{server}/jobs/{job_id}/artifacts", headers=headers).json()
+    url = next(a["download_url"] for a in arts if a["name"] == "combined/report.json")
+    return httpx.get(url, headers=headers).text
+
+
+def _text(driver) -> str:
+    return driver.find_element("tag name", "main").text
+
+
+def _by(driver, css):
+    return driver.find_element("css selector", css)
+
+
+def _all(driver, css):
+    return driver.find_elements("css selector", css)
+
+
+def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots):
+    d = browser
+    d.get(f"{server}/ui/")
+    _wait(d, lambda d: _by(d, "#api-key"), what="the sign-in form")
+    _by(d, "#api-key").send_keys("mv_wrong")
+    _by(d, "#signin button").click()
+    _wait(d, lambda d: "sign in failed" in _by(d, "#signin-error").text, what="the refusal of a wrong key")
+    _by(d, "#api-key").clear()
+    _by(d, "#api-key").send_keys(KEY)
+    _by(d, "#signin button").click()
+    _wait(d, lambda d: _by(d, "#projects"), what="the projects list")
+
+    _by(d, "#project-name").send_keys("tiny through the browser")
+    _by(d, "#create-project button").click()
+    _wait(d, lambda d: "#/projects/" in d.current_url and _by(d, "#aerial-files"), what="the project page")
+    images = survey / "images"
+    aerial, ground = sorted((images / "aerial").iterdir()), sorted((images / "ground").iterdir())
+    _by(d, "#aerial-files").send_keys("\n".join(str(p) for p in aerial))
+    _by(d, "#ground-files").send_keys("\n".join(str(p) for p in ground))
+    _wait(d, lambda d: _by(d, "#aerial-total-text").text.startswith("20/20 files"), 120, "the aerial uploads")
+    _wait(d, lambda d: _by(d, "#ground-total-text").text.startswith("4/4 files"), 60, "the ground uploads")
+    rows = _all(d, "#aerial-uploads tr.upload-row")
+    assert len(rows) == 20 and all(r.find_elements("css selector", "td")[-1].text == "uploaded" for r in rows)
+    assert float(_by(d, "#aerial-total").get_attribute("value")) == 1.0
+    # a POS file naming an image that is not there: refused, with the row's message
+    bad = survey.parent / "bad-pos.csv"
+    text = (survey / "pos.csv").read_text()
+    last = text.strip().splitlines()[-1]
+    bad.write_text(text + "aerial/NOPE.jpg," + last.split(",", 1)[1] + "\n")
+    _by(d, "#pos-file").send_keys(str(bad))
+    _wait(d, lambda d: "NOPE.jpg" in _by(d, "#pos-result").text, what="the POS check's message")
+    _by(d, "#pos-file").send_keys(str(survey / "pos.csv"))
+    _wait(d, lambda d: "24 rows stored" in _by(d, "#pos-result").text, what="the POS upload")
+    _by(d, "#cameras-file").send_keys(str(survey / "cameras.json"))
+    _wait(d, lambda d: "cameras.json stored" in _by(d, "#toast").text, what="the intrinsics")
+    _wait(d, lambda d: "20 aerial, 4 ground images, 24 POS rows" in _by(d, "#image-counts").text)
+    d.save_screenshot(str(shots / "project-1280.png"))
+
+    _by(d, "#job-options").clear()
+    _by(d, "#job-options").send_keys(json.dumps(OPTIONS))
+    _by(d, "#start-job").click()
+    _wait(d, lambda d: "#/jobs/" in d.current_url and _by(d, "#job-status"), what="the job page")
+    job_url = d.current_url
+    seen = set()
+
+    def finished(d):
+        status = _by(d, "#job-status").text
+        seen.add(status)
+        return status in ("succeeded", "failed", "cancelled") and status
+
+    assert _wait(d, finished, JOB_TIMEOUT_S, "the end of the job") == "succeeded", _text(d)
+    assert "running" in seen  # the page followed the job live
+    # (read in one script: the page re-renders its rows as the last events arrive)
+    stages = d.execute_script(ROWS, "#stages tr.stage-row")
+    names = [
+        "aerial_sfm",
+        "train_splat",
+        "plan_views",
+        "render_views",
+        "match_views",
+        "reduce",
+        "combined_sfm",
+    ]
+    assert [r[0] for r in stages] == names and all(r[1] == "succeeded" for r in stages), stages
+    assert float(_by(d, "#job-progress").get_attribute("value")) == 100.0
+    log = _by(d, "#job-log").text
+    assert "train_splat" in log and "end: succeeded" in log
+    assert "ground" in _by(d, "#job-outcome").text
+    _wait(d, lambda d: len(_all(d, "#artifacts tr.artifact-row")) >= 10, what="the artifacts")
+    names = [r[0] for r in d.execute_script(ROWS, "#artifacts tr.artifact-row")]
+    assert "combined/gis/cameras.gpkg" in names and "combined/report.json" in names
+    d.save_screenshot(str(shots / "job-1280.png"))
+
+    _by(d, "#map-link").click()
+    _wait(d, lambda d: _all(d, "#map circle.cam"), 30, "the map")
+    assert len(_all(d, "#map circle.cam.aerial")) >= 16
+    assert len(_all(d, "#map circle.pos")) == 24  # every image's POS
+    ground_rows = _all(d, "#ground-images tr.ground-row")
+    assert len(ground_rows) == 4
+    for r in ground_rows:
+        cells = [c.text for c in r.find_elements("css selector", "td")]
+        assert cells[1] in ("yes", "no") and (cells[1] == "yes" or cells[4])  # not registered: the reason
+    registered = sum(r.find_elements("css selector", "td")[1].text == "yes" for r in ground_rows)
+    assert (
+        len(_all(d, "#map circle.cam.ground")) == 4
+        and len(_all(d, "#map line.error-line")) >= 16 + registered
+    )
+    d.save_screenshot(str(shots / "map-1280.png"))
+
+    # the 3D view: every point of the combined model and every registered camera (three.js, WebGL)
+    _by(d, "#view3d-link").click()
+    drawn = _wait(d, lambda d: d.execute_script("return window.midview3d"), 60, "the 3D view")
+    report = json.loads(urlopen_json(server, d))
+    assert drawn["points"] == report["num_points3D"] > 0
+    assert drawn["cameras"] == sum(report["num_registered"].values())
+    assert drawn.get("webgl", True), "no WebGL in this Chromium"
+    d.save_screenshot(str(shots / "3d-1280.png"))
+    d.back()
+    _wait(d, lambda d: _all(d, "#ground-images tr.ground-row"), 30, "the map again")
+    ground_rows = _all(d, "#ground-images tr.ground-row")
+    ground_rows[0].find_element("css selector", "a").click()
+    photo_width = "const i = document.getElementById('ground-photo'); return i && i.naturalWidth"
+    _wait(d, lambda d: d.execute_script(photo_width), 30, "the ground image")
+    assert d.execute_script("return document.getElementById('ground-photo').naturalWidth") == 320
+    if _by(d, "#pose-registered").text == "no":
+        assert _by(d, "#pose-reason").text
+    pairs = _all(d, "#pairs tr.pair-row")
+    if pairs:  # the first pair is drawn: both images side by side with its matches
+        _wait(d, lambda d: d.execute_script("return document.getElementById('pair-canvas').width") > 320,
+              30, "the match picture")  # fmt: skip
+        assert "matches" in _by(d, "#pair-info").text
+    d.save_screenshot(str(shots / "ground-1280.png"))
+
+    # a phone: 390 px wide, nothing wider than the screen
+    d.set_window_size(390, 844)
+    for url, shot, ready in [(job_url, "job-390.png", "#stages tr.stage-row"),
+                             (job_url + "/map", "map-390.png", "#map circle.cam")]:  # fmt: skip
+        d.get(url)
+        _wait(d, lambda d, css=ready: _all(d, css), 30, shot)
+        width = d.execute_script("return document.documentElement.scrollWidth")
+        inner = d.execute_script("return window.innerWidth")
+        assert width <= inner + 1, (shot, width, inner)
+        d.save_screenshot(str(shots / shot))
+    # no script error, and no failed request but the two the test made on purpose (the wrong key's 401 on
+    # /projects, the bad POS file's 422)
+    expected = [("/projects -", "401"), ("/pos -", "422")]
+    errors = [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
+    unexpected = [e for e in errors if not (e["source"] == "network" and any(
+        url in e["message"] and code in e["message"] for url, code in expected))]  # fmt: skip
+    assert unexpected == [], unexpected
