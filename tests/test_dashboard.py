@@ -230,6 +230,7 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     _wait(d, lambda d: _all(d, "#map circle.cam"), 30, "the map")
     assert len(_all(d, "#map circle.cam.aerial")) >= 16
     assert len(_all(d, "#map circle.pos")) == 24  # every image's POS
+    assert len(_all(d, "#map polygon.footprint")) == 20  # the aerial images' footprints, the background
     ground_rows = _all(d, "#ground-images tr.ground-row")
     assert len(ground_rows) == 4
     for r in ground_rows:
@@ -257,6 +258,10 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     photo_width = "const i = document.getElementById('ground-photo'); return i && i.naturalWidth"
     _wait(d, lambda d: d.execute_script(photo_width), 30, "the ground image")
     assert d.execute_script("return document.getElementById('ground-photo').naturalWidth") == 320
+    # its intermediate views (the ground-aware planner renders one per ground image here), loaded
+    views_loaded = "return [...document.querySelectorAll('#views img.view-image')].map((i) => i.naturalWidth)"
+    widths = _wait(d, lambda d: (w := d.execute_script(views_loaded)) and all(w) and w, 30, "the views")
+    assert len(widths) >= 1 and all(w == 320 for w in widths)
     if _by(d, "#pose-registered").text == "no":
         assert _by(d, "#pose-reason").text
     pairs = _all(d, "#pairs tr.pair-row")

@@ -66,7 +66,7 @@ STAGE_EXTRA: dict[str, list[str]] = {
     "aerial_sfm": ["cameras.json"],
     "combined_sfm": ["features"],  # the combined SfM extends the matching feature cache
 }
-# user-facing outputs recorded as artifacts: (path or folder/* relative to the job folder, kind)
+# user-facing outputs recorded as artifacts: (path, folder/* or folder/*.ext relative to the job folder, kind)
 ARTIFACTS: dict[str, list[tuple[str, str]]] = {
     "aerial_sfm": [
         ("sfm/report.json", "report"),
@@ -77,7 +77,7 @@ ARTIFACTS: dict[str, list[tuple[str, str]]] = {
     ],
     "train_splat": [("splat/point_cloud.ply", "splat"), ("splat/metrics.json", "metrics")],
     "plan_views": [("plan/views.json", "views")],
-    "render_views": [("views/views.json", "views")],
+    "render_views": [("views/views.json", "views"), ("views/*.png", "view")],
     "match_views": [],
     "reduce": [
         ("transfer/matches.h5", "matches"),  # the API's /jobs/{id}/pairs reads the newest "matches"
@@ -384,9 +384,8 @@ def _sha256(path: Path) -> str:
 def _record_artifacts(session: Any, info: JobInfo, job: Any, stage: str) -> int:
     n = 0
     for pattern, kind in ARTIFACTS.get(stage, []):
-        if pattern.endswith("/*"):
-            folder = job.root / pattern[:-2]
-            files = sorted(p for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
+        if "*" in pattern:  # folder/* or folder/*.png: the files of one folder
+            files = sorted(p for p in job.root.glob(pattern) if p.is_file())
         else:
             files = [job.root / pattern] if (job.root / pattern).is_file() else []
         for p in files:

@@ -369,18 +369,20 @@ async function jobPage(jobId) {
 }
 
 // -- the map and the ground images -----------------------------------------------------------------
-async function camerasOf(jobId) {  // the GeoJSON layer of the combined model's cameras, or null
+async function layerOf(jobId, name) {  // a JSON artifact of the job, or null
   const arts = await api("GET", `/jobs/${jobId}/artifacts`);
-  const a = arts.find((x) => x.name === "combined/gis/cameras.geojson");
+  const a = arts.find((x) => x.name === name);
   if (!a) return null;
   const r = isApiUrl(a.download_url) ? await api("GET", a.download_url, undefined, true) : await fetch(a.download_url);
   return r.json();
 }
+const camerasOf = (jobId) => layerOf(jobId, "combined/gis/cameras.geojson");  // the combined model's cameras
 async function mapPage(jobId) {
   const job = await api("GET", `/jobs/${jobId}`);
   const project = await api("GET", `/projects/${job.project_id}`);
   jobNav(job, project);
-  const [gj, pos] = await Promise.all([camerasOf(jobId), api("GET", `/projects/${job.project_id}/pos`)]);
+  const [gj, pos, aerialLayer] = await Promise.all([camerasOf(jobId), api("GET", `/projects/${job.project_id}/pos`),
+    layerOf(jobId, "sfm/cameras.geojson")]);
   if (!gj) { main.replaceChildren(h("section", {}, h("p", {}, "no cameras layer yet: the job has not finished its combined SfM"))); return; }
   const posBy = Object.fromEntries(pos.map((r) => [r.image_name, r]));
   const pts = gj.features.map((f) => ({ p: f.properties, lon: f.geometry.coordinates[0], lat: f.geometry.coordinates[1] }));
@@ -396,6 +398,13 @@ async function mapPage(jobId) {
   for (let m = 10; m * scale < W / 4; m *= 2) { if (m * scale > W / 12) { // scale bar
     map.append(s("line", { x1: 20, y1: H - 20, x2: 20 + m * scale, y2: H - 20, stroke: "#333", "stroke-width": 3 }));
     const t = s("text", { x: 20, y: H - 28, "font-size": 14 }); t.textContent = `${m} m`; map.append(t); break; } }
+  // the aerial images' ground footprints (the aerial SfM's layer): the map's background
+  for (const f of (aerialLayer ? aerialLayer.features : []).filter((f) => f.geometry.type === "Polygon")) {
+    const ring = f.geometry.coordinates[0].map(([lon, lat]) => xy(lon, lat)).map(([x, y]) => `${sx(x).toFixed(1)},${sy(y).toFixed(1)}`);
+    const poly = s("polygon", { points: ring.join(" "), fill: "#2457c5", "fill-opacity": 0.05, stroke: "#2457c5", "stroke-opacity": 0.25, class: "footprint" });
+    const title = s("title"); title.textContent = `footprint of ${f.properties.name}`; poly.append(title);
+    map.insertBefore(poly, map.firstChild);
+  }
   const colour = (q) => q.p.set === "aerial" ? "#2457c5" : q.p.registered ? "#1a7f37" : "#c62828";
   for (const q of pts) {
     const r = posBy[q.p.name];
@@ -454,6 +463,15 @@ async function groundPage(jobId, file) {
   try { pairs = (await api("GET", `/jobs/${jobId}/pairs?limit=10000`)).pairs.filter((p) => p.ground === name); }
   catch (x) { if (x.status !== 404 && x.status !== 422) throw x; }
   pairs.sort((a, b) => (b.num_inliers ?? b.num_matches) - (a.num_inliers ?? a.num_matches));
+  // the intermediate views rendered for this ground image (the view planner's record, the rendered PNGs)
+  const [plan, arts] = await Promise.all([layerOf(jobId, "views/views.json"), api("GET", `/jobs/${jobId}/artifacts`)]);
+  const mine = plan ? plan.views.filter((v) => v.source === name) : [];
+  const viewImgs = await Promise.all(mine.map(async (v) => {
+    const a = arts.find((x) => x.name === `views/${v.name}.png`);
+    if (!a) return null;
+    const src = isApiUrl(a.download_url) ? await authedUrl(a.download_url) : a.download_url;
+    return h("figure", { class: "view" }, h("img", { class: "photo view-image", src, alt: v.name }), h("figcaption", { class: "muted" }, `${v.name} (${v.planner})`));
+  }));
   const photo = h("img", { class: "photo", id: "ground-photo", alt: name, src: await authedUrl(`/projects/${job.project_id}/images/${name}/download`) });
   const canvas = h("canvas", { class: "matches", id: "pair-canvas" });
   const pairInfo = h("p", { class: "muted", id: "pair-info" });
@@ -471,6 +489,8 @@ async function groundPage(jobId, file) {
         p.to_pos_m !== null ? h("tr", {}, h("th", {}, "distance to its POS"), h("td", {}, `${p.to_pos_m.toFixed(2)} m`)) : "",
         p.heading !== null ? h("tr", {}, h("th", {}, "heading / pitch / roll"), h("td", {}, `${p.heading.toFixed(1)}° / ${p.pitch.toFixed(1)}° / ${p.roll.toFixed(1)}°`)) : ""))
         : h("p", { class: "muted" }, "the job has no combined model yet"))),
+    h("section", {}, h("h2", {}, `Intermediate views (${viewImgs.filter(Boolean).length})`),
+      h("div", { class: "grid2", id: "views" }, viewImgs.filter(Boolean))),
     h("section", {}, h("h2", {}, `Aerial images matched (${pairs.length})`),
       h("table", { id: "pairs" }, h("tbody", {}, pairs.map((q) => h("tr", { class: "pair-row" },
         h("td", {}, h("button", { class: "link", onclick: () => show(q) }, q.aerial)),
