@@ -154,6 +154,8 @@ def _all(driver, css):
 
 
 def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots):
+    import httpx
+
     d = browser
     d.get(f"{server}/ui/")
     _wait(d, lambda d: _by(d, "#api-key"), what="the sign-in form")
@@ -250,6 +252,12 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     assert drawn["points"] == report["num_points3D"] > 0
     assert drawn["cameras"] == sum(report["num_registered"].values())
     assert drawn.get("webgl", True), "no WebGL in this Chromium"
+    splat = _wait(d, lambda d: d.execute_script("return window.midview3dSplat"), 60, "the 3DGS view")
+    job_id = d.current_url.split("#/jobs/")[1].split("/")[0]
+    metrics = httpx.get(f"{server}/jobs/{job_id}", headers={"Authorization": f"Bearer {KEY}"}).json()[
+        "metrics"
+    ]
+    assert splat["total"] == metrics["train_splat"]["num_gaussians"] and 0 < splat["points"] <= splat["total"]
     d.save_screenshot(str(shots / "3d-1280.png"))
     d.back()
     _wait(d, lambda d: _all(d, "#ground-images tr.ground-row"), 30, "the map again")

@@ -523,7 +523,21 @@ async function page3d(jobId) {
   const points = view.parseLas(las), cams = view.parseOpk(new TextDecoder().decode(opk));
   info.textContent = `${points.count} points, ${cams.filter((c) => c.set === "aerial").length} aerial and ${cams.filter((c) => c.set === "ground").length} ground cameras`;
   if (!view.webglAvailable()) { info.textContent += " — this browser has no WebGL to draw them"; window.midview3d = { points: points.count, cameras: cams.length, webgl: false }; return; }
-  leaving.push(view.draw(box, points, cams));
+  const stop = view.draw(box, points, cams);
+  leaving.push(stop);
+  window.midview3d = stop.report;
+  // the aerial 3DGS (its Gaussians' centres and colours, in the aerial model's local frame), when it is small
+  // enough to fetch
+  const splatBox = h("div", { id: "splat3d" }), splatInfo = h("p", { class: "muted", id: "splat3d-info" });
+  main.append(h("section", {}, h("h2", {}, "3D Gaussian Splatting model of the aerial images"), splatInfo, splatBox));
+  const art = (await api("GET", `/jobs/${jobId}/artifacts`)).find((a) => a.name === "splat/point_cloud.ply");
+  if (!art) { splatInfo.textContent = "no 3DGS model in this job"; return; }
+  if (art.size_bytes > 64e6) { splatInfo.textContent = `the 3DGS model is ${fmtBytes(art.size_bytes)}: download it from the job's results`; return; }
+  const ply = view.parsePly(await artifactBytes(jobId, "splat/point_cloud.ply"));
+  splatInfo.textContent = `${ply.count} of ${ply.total} Gaussians (those with opacity over 0.2), at their centres with their base colour`;
+  const stopSplat = view.draw(splatBox, ply, []);
+  leaving.push(stopSplat);
+  window.midview3dSplat = { ...stopSplat.report, total: ply.total };
 }
 
 // -- router ----------------------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 // The 3D view of a job: the combined model's points (combined/gis/points.las) and cameras
 // (combined/gis/cameras_opk.txt), both in the job's output CRS, drawn with three.js (installed from the
-// npm registry by scripts/setup.sh). window.midview3d reports what was drawn (the browser tests read it).
+// npm registry by scripts/setup.sh). draw() returns a stop function with a report of what it drew.
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 
@@ -21,6 +21,36 @@ export function parseLas(buf) {
     for (let k = 0; k < 3; k++) rgb[3 * i + k] = colour >= 0 ? v.getUint16(o + colour + 2 * k, true) / 65535 : 0.7;
   }
   return { xyz, rgb, count };
+}
+
+/** The Gaussians of a 3DGS PLY (binary little endian, as gsplat and midview write it) as points:
+ * {xyz, rgb, count, total}: centres of those with opacity over minOpacity, coloured by their SH DC term. */
+export function parsePly(buf, minOpacity = 0.2) {
+  const head = new TextDecoder().decode(new Uint8Array(buf, 0, Math.min(buf.byteLength, 65536)));
+  const end = head.indexOf("end_header\n");
+  if (!head.startsWith("ply") || end < 0) throw new Error("not a PLY file");
+  if (!head.includes("format binary_little_endian")) throw new Error("only binary little-endian PLY files");
+  const sizes = { float: 4, float32: 4, double: 8, uchar: 1, uint8: 1, char: 1, short: 2, ushort: 2, int: 4, uint: 4 };
+  let total = 0, stride = 0;
+  const at = {}, types = {};
+  for (const line of head.slice(0, end).split("\n")) {
+    const w = line.trim().split(/\s+/);
+    if (w[0] === "element") { if (w[1] !== "vertex") break; total = Number(w[2]); }
+    if (w[0] === "property") { at[w[2]] = stride; types[w[2]] = w[1]; stride += sizes[w[1]] || 4; }
+  }
+  for (const k of ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]) {
+    if (!(k in at) || !["float", "float32"].includes(types[k])) throw new Error(`PLY without a float ${k}`);
+  }
+  const v = new DataView(buf, end + "end_header\n".length);
+  const C0 = 0.28209479177387814, xyz = [], rgb = [];
+  for (let i = 0; i < total; i++) {
+    const o = i * stride;
+    const opacity = 1 / (1 + Math.exp(-v.getFloat32(o + at.opacity, true)));
+    if (opacity < minOpacity) continue;
+    xyz.push(v.getFloat32(o + at.x, true), v.getFloat32(o + at.y, true), v.getFloat32(o + at.z, true));
+    for (const k of ["f_dc_0", "f_dc_1", "f_dc_2"]) rgb.push(Math.min(1, Math.max(0, 0.5 + C0 * v.getFloat32(o + at[k], true))));
+  }
+  return { xyz: Float64Array.from(xyz), rgb: Float32Array.from(rgb), count: xyz.length / 3, total };
 }
 
 /** [{name, set, c: [x, y, z], view: [dx, dy, dz]}] of an omega/phi/kappa file (degrees; camera looks along -z). */
@@ -85,7 +115,9 @@ export function draw(container, las, cams) {
   let running = true;
   const loop = () => { if (!running) return; controls.update(); renderer.render(scene, camera); requestAnimationFrame(loop); };
   loop();
-  window.midview3d = { points: n, cameras: cams.length, aerial: cams.filter((c) => c.set === "aerial").length,
+  const report = { points: n, cameras: cams.length, aerial: cams.filter((c) => c.set === "aerial").length,
     ground: cams.filter((c) => c.set === "ground").length, canvas: renderer.domElement };
-  return () => { running = false; renderer.dispose(); };
+  const stop = () => { running = false; renderer.dispose(); };
+  stop.report = report;
+  return stop;
 }
