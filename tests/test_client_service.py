@@ -145,12 +145,14 @@ def test_a_killed_submission_resumes_its_upload_and_follows_the_job(service, sur
     out = r.output
     assert out.count("  present ") == 7 and f"resumed aerial/{PADDED}" in out, out
     assert out.count("  uploaded ") == 24 - 8  # the rest, each once
-    # only the parts the storage lacked were sent again
+    # only parts the storage lacked were sent again: at most those missing right after the kill (parts
+    # whose bytes had left the killed client may still land after it died: S3 completes them)
     missing = r.parts_at_kill[0]["missing"] + r.parts_at_kill[0]["wrong_size"]
     assert len(missing) < 3
-    assert sorted(
+    sent = [
         int(ln.split("part ")[1].split("/")[0]) for ln in out.splitlines() if PADDED in ln and ": part " in ln
-    ) == sorted(missing), out
+    ]
+    assert set(sent) <= set(missing) and len(sent) == len(set(sent)), (sent, missing, out)
     # the job's progress, from its event stream, to the end
     stages = [ln.split()[3] for ln in out.splitlines() if ln.startswith("job ") and ": running " in ln]
     assert {"aerial_sfm", "train_splat", "match_views", "combined_sfm"} <= set(stages), out
