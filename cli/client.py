@@ -266,7 +266,7 @@ def campaign_submit(
         _echo(f"campaign {m.name}: {len(m.surveys)} surveys, at most {m.max_concurrent} jobs at once")
         report = run_campaign(mv, m, _Progress(), follow=follow, poll_s=poll, on_status=_show_campaign)
     _echo(report.summary())
-    if follow and report.campaign["jobs_by_status"].get("succeeded", 0) != len(report.campaign["jobs"]):
+    if follow and not report.all_succeeded():
         _echo(f"retry the failed jobs from their failed stage: midview campaign retry {m.name}")
         raise typer.Exit(1)
 
@@ -309,5 +309,5 @@ def campaign_retry(
     for j in rerun:
         _echo(f"rerun {j['project_name']} (job {j['id']}, attempt {j['attempt']})")
     _echo(report.summary())
-    if follow and report.campaign["jobs_by_status"].get("succeeded", 0) != len(report.campaign["jobs"]):
+    if follow and not report.all_succeeded():
         raise typer.Exit(1)

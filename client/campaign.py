@@ -95,6 +95,11 @@ def read_manifest(path: Path, name: str | None = None, max_concurrent: int | Non
 class CampaignReport:
     campaign: Campaign
 
+    def all_succeeded(self) -> bool:
+        return self.campaign.get("jobs_by_status", {}).get("succeeded", 0) == len(
+            self.campaign.get("jobs", [])
+        )
+
     def summary(self) -> str:
         c = self.campaign
         states = ", ".join(f"{n} {s}" for s, n in sorted(c.get("jobs_by_status", {}).items()))

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from shared.job_options import DEFAULT_STAGES
+
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -209,18 +211,12 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     assert "running" in seen  # the page followed the job live
     # (read in one script: the page re-renders its rows as the last events arrive)
     stages = d.execute_script(ROWS, "#stages tr.stage-row")
-    names = [
-        "aerial_sfm",
-        "train_splat",
-        "plan_views",
-        "render_views",
-        "match_views",
-        "reduce",
-        "combined_sfm",
-    ]
-    assert [r[0] for r in stages] == names and all(r[1] == "succeeded" for r in stages), stages
+    assert [r[0] for r in stages] == list(DEFAULT_STAGES) and all(r[1] == "succeeded" for r in stages), stages
     assert float(_by(d, "#job-progress").get_attribute("value")) == 100.0
-    log = _by(d, "#job-log").text
+    # the stream's `end` event is logged after the last progress event's re-render: wait for it
+    log = _wait(
+        d, lambda d: (t := _by(d, "#job-log").text) and "end: succeeded" in t and t, 30, "the end event"
+    )
     assert "train_splat" in log and "end: succeeded" in log
     assert "ground" in _by(d, "#job-outcome").text
     _wait(d, lambda d: len(_all(d, "#artifacts tr.artifact-row")) >= 10, what="the artifacts")
