@@ -641,25 +641,28 @@ def draw_pair(
 def write_report_html(
     out: Path, scene: Path, files: dict, rows: list[dict], sfm_evals: dict[str, dict], timings: dict, job
 ) -> Path:
-    """report.html: the table, timings, and match drawings of a few pairs for every method."""
+    """report.html: the dashboard's page of the job, static and self-contained (cli/report_page.py), with
+    the table of every method against the ground truth and match drawings of a few pairs per method."""
     import csv
-    import html
 
-    # the pairs where midview has most GT-correct matches, plus the best pair of the direct baseline
+    from cli.report_page import jpeg_data_url, write_report_page
+
+    # the pairs where midview has most GT-correct matches, drawn for every method
     per_pair = out / "eval" / Path(files["midview"]).stem / "per_pair.csv"
     picks: list[tuple[str, str]] = []
     if per_pair.is_file():
         with open(per_pair) as f:
             rs = sorted(csv.DictReader(f), key=lambda r: -int(r["gt_correct"]))
         picks = [(r["aerial"], r["ground"]) for r in rs[:3]]
-    imgs = []
+    pictures = []
     for a, g in picks:
         for label, path in files.items():
             name = f"{Path(path).stem}__{Path(a).stem}_{Path(g).stem}.jpg"
             p = draw_pair(scene, Path(path), a, g, out / "pictures" / name)
             if p is not None:
-                imgs.append((label, a, g, p.relative_to(out)))
-    head = [
+                caption = f"{label}: {a} / {g} (green: correct under ground truth, red: wrong)"
+                pictures.append({"caption": caption, "src": jpeg_data_url(p, 1400)})
+    columns = [
         "method",
         "NIM",
         "NCM",
@@ -672,53 +675,45 @@ def write_report_html(
         "ground abs error med / max (m)",
         "aerial-aligned (m)",
     ]
-    trs = []
+    table = []
     for s in rows:
         ev = sfm_evals.get(s["method"])
-        vals = [
-            s["method"],
-            f"{s['mean_nim']:.1f}",
-            f"{s['mean_ncm']:.1f}",
-            f"{s['mean_gt_correct']:.1f}",
-            f"{s['mean_precision']:.3f}",
-            f"{s['pooled_precision']:.3f}",
-            f"{s['nmp']}/{s['num_pairs']}",
-            nri_ground(ev),
-            str(ground_within(ev)) if ev else "-",
-            ground_error(ev),
-            ground_error(ev, "aerial_aligned_error"),
-        ]
-        trs.append("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in vals) + "</tr>")
-    pics = "\n".join(
-        f"<figure><img src='{html.escape(str(p))}' width='100%'><figcaption>{html.escape(label)}: "
-        f"{html.escape(a)} / {html.escape(g)} (green: correct under ground truth, red: wrong)"
-        "</figcaption></figure>"
-        for label, a, g, p in imgs
-    )
-    ev = sfm_evals.get("midview")
-    sfm_txt = ""
-    if ev:
-        sfm_txt = (
-            f"<p>midview's combined SfM: NRI aerial {ev['per_set']['aerial']['num_registered']}/"
-            f"{ev['per_set']['aerial']['num_gt']}, ground {nri_ground(ev)}, N3P {ev['num_points3D']}; ground "
-            f"camera position error median / max {ground_error(ev)} m in the georeferenced frame "
-            f"(absolute), {ground_error(ev, 'aerial_aligned_error')} m after aligning the aerial cameras "
-            "to the truth.</p>"
+        table.append(
+            [
+                s["method"],
+                f"{s['mean_nim']:.1f}",
+                f"{s['mean_ncm']:.1f}",
+                f"{s['mean_gt_correct']:.1f}",
+                f"{s['mean_precision']:.3f}",
+                f"{s['pooled_precision']:.3f}",
+                f"{s['nmp']}/{s['num_pairs']}",
+                nri_ground(ev),
+                str(ground_within(ev)) if ev else "-",
+                ground_error(ev),
+                ground_error(ev, "aerial_aligned_error"),
+            ]
         )
-    doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>midview demo</title>
-<style>body{{font-family:sans-serif;max-width:1400px;margin:auto}}
-td,th{{padding:4px 10px;text-align:right}} td:first-child{{text-align:left}}
-table{{border-collapse:collapse}} tr:nth-child(even){{background:#eee}}</style>
-</head><body><h1>midview demo: {html.escape(str(scene))}</h1>
-<p>Co-visible aerial-ground pairs of the ground truth; means per pair. GT-correct: verified matches
-within 3 px in both images through the true depth; NMP: pairs with at least 15 GT-correct matches.</p>
-<table><tr>{"".join(f"<th>{h}</th>" for h in head)}</tr>{"".join(trs)}</table>
-{sfm_txt}
-<p>Options: {html.escape(json.dumps(job.options.model_dump(mode="json")))}<br>
-Timings (s): {html.escape(json.dumps({k: round(v, 1) for k, v in timings.items()}))}</p>
-<h2>Matches</h2>{pics}</body></html>"""
-    path = out / "report.html"
-    path.write_text(doc)
+    notes = [
+        f"Synthetic survey {scene}: co-visible aerial-ground pairs of the ground truth, means per pair. "
+        "GT-correct: verified matches within 3 px in both images through the true depth; NMP: pairs with "
+        "at least 15 GT-correct matches; ground errors in the georeferenced frame (absolute), and after "
+        "aligning the aerial cameras to the truth."
+    ]
+    ev = sfm_evals.get("midview")
+    if ev:
+        notes.append(
+            f"midview's combined SfM: NRI aerial {ev['per_set']['aerial']['num_registered']}/"
+            f"{ev['per_set']['aerial']['num_gt']}, ground {nri_ground(ev)}, N3P {ev['num_points3D']}."
+        )
+    notes.append("Timings (s): " + json.dumps({k: round(v, 1) for k, v in timings.items()}))
+    evaluation = {
+        "title": "midview and the direct baselines against the ground truth",
+        "columns": columns,
+        "rows": table,
+        "notes": notes,
+        "pictures": pictures,
+    }
+    path = write_report_page(out / "report.html", job, scene, evaluation)
     (out / "report.json").write_text(
         json.dumps({"rows": rows, "sfm": sfm_evals, "timings": timings}, indent=1, default=str)
     )

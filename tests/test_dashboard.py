@@ -34,6 +34,7 @@ JOB_TIMEOUT_S = 600
 ROWS = (
     "return [...document.querySelectorAll(arguments[0])].map((r) => [...r.cells].map((c) => c.textContent))"
 )
+SERVE: dict[str, Path] = {}  # the server's data folder (its embedded worker's job folders)
 
 
 @pytest.fixture(scope="module")
@@ -54,6 +55,7 @@ def server(tmp_path_factory):
 
     (port,) = free_ports(1)
     folder = tmp_path_factory.mktemp("serve")
+    SERVE["data"] = folder / "data"
     env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
     env.update(
         MIDVIEW_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", MIDVIEW_EVENTS_POLL_S="0.2"
@@ -153,6 +155,13 @@ def _by(driver, css):
 
 def _all(driver, css):
     return driver.find_elements("css selector", css)
+
+
+def _console_errors(driver, expected=()) -> list:
+    """Severe browser log entries but failed requests the test made on purpose ((url part, status))."""
+    errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+    return [e for e in errors if not (e["source"] == "network" and any(
+        url in e["message"] and code in e["message"] for url, code in expected))]  # fmt: skip
 
 
 def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots):
@@ -287,8 +296,93 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
         d.save_screenshot(str(shots / shot))
     # no script error, and no failed request but the two the test made on purpose (the wrong key's 401 on
     # /projects, the bad POS file's 422)
-    expected = [("/projects -", "401"), ("/pos -", "422")]
-    errors = [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
-    unexpected = [e for e in errors if not (e["source"] == "network" and any(
-        url in e["message"] and code in e["message"] for url, code in expected))]  # fmt: skip
+    unexpected = _console_errors(d, [("/projects -", "401"), ("/pos -", "422")])
     assert unexpected == [], unexpected
+
+
+def test_the_demo_report_is_the_same_page_static_from_the_file_system(browser, survey, shots, tmp_path):
+    """`midview demo`'s report.html (cli/report_page.py) of the job the test above ran: one file that opens
+    from the file system with no server, the dashboard's own pages on the recorded answers, matches
+    coloured by the ground truth of the synthetic survey."""
+    from cli.report_page import snapshot, write_report_page
+    from services import pipeline
+    from services.evaluation import evaluate_matches
+    from services.evaluation.common import read_covisible
+
+    roots = sorted(p.parent for p in (SERVE["data"] / "work").glob("*/job.json"))
+    assert len(roots) == 1, f"the job of the test above: {roots}"
+    job = pipeline.Job.load(roots[0])
+    evaluation = {"title": "methods", "columns": ["method", "GT-correct"], "rows": [["midview", "1.0"]],
+                  "notes": ["a note"], "pictures": []}  # fmt: skip
+    snap = snapshot(job, survey, evaluation)
+    # the truth of each match is the evaluator's: over the co-visible pairs, verified and true = GT-correct
+    covisible = {(a, g) for a, g, _ in read_covisible(survey / "gt" / "covisible.csv")}
+    pairs = {k: v for k, v in snap["json"].items() if "/pairs/aerial/" in k}
+    assert pairs and all(len(v["truth"]) == v["num_matches"] for v in pairs.values())
+    true_verified = sum(
+        sum(t and i for t, i in zip(v["truth"], v["inliers"], strict=True))
+        for v in pairs.values()
+        if (v["aerial"], v["ground"]) in covisible
+    )
+    ev = evaluate_matches(survey, job.dir("transfer") / "matches.h5")
+    assert true_verified == ev["total_gt_correct"]
+    # one file: no request leaves it (the large 3DGS model is linked beside it, not loaded)
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / job.root.name).symlink_to(job.root)
+    path = write_report_page(out / "report.html", job, survey, evaluation)
+    d = browser
+    d.set_window_size(1280, 800)
+    d.get_log("browser")  # drop what the test above left
+    d.get(path.as_uri())
+    _wait(d, lambda d: _all(d, "#stages tr.stage-row"), 30, "the report's job page")
+    stages = d.execute_script(ROWS, "#stages tr.stage-row")
+    assert [r[0] for r in stages] == list(DEFAULT_STAGES) and all(r[1] == "succeeded" for r in stages), stages
+    assert d.execute_script(ROWS, "#evaluation-table tr.evaluation-row") == [["midview", "1.0"]]
+    assert not _all(d, "#cancel-job") and not _all(d, "#rerun-job")  # read only
+    names = [r[0] for r in d.execute_script(ROWS, "#artifacts tr.artifact-row")]
+    assert "combined/report.json" in names and "splat/point_cloud.ply" in names
+    report = json.loads((job.dir("combined") / "report.json").read_text())
+    assert _by(d, "#job-outcome").text.startswith(f"ground {report['num_registered']['ground']}/4")
+    d.save_screenshot(str(shots / "report-job-1280.png"))
+    _by(d, "#map-link").click()
+    _wait(d, lambda d: _all(d, "#map circle.cam"), 30, "the report's map")
+    assert len(_all(d, "#map circle.pos")) == 24 and len(_all(d, "#map polygon.footprint")) == 20
+    _by(d, "#view3d-link").click()
+    drawn = _wait(d, lambda d: d.execute_script("return window.midview3d"), 60, "the report's 3D view")
+    assert drawn["points"] == report["num_points3D"] > 0
+    assert drawn["cameras"] == sum(report["num_registered"].values())
+    assert "point_cloud.ply" in _wait(d, lambda d: _by(d, "#splat3d-info").text, 30, "the 3DGS link")
+    d.save_screenshot(str(shots / "report-3d-1280.png"))
+    # the ground image with the most transferred matches: its views and its matches, by the truth
+    best = max(pairs.values(), key=lambda v: (sum(v["truth"]), v["num_matches"]))
+    d.get(f"{path.as_uri()}#/jobs/demo-job/ground/{best['ground'].split('/')[1]}")
+    photo = "const i = document.getElementById('ground-photo'); return i && i.naturalWidth"
+    _wait(d, lambda d: d.execute_script(photo), 30, "the photo")
+    assert len(_all(d, "#views img.view-image")) >= 1
+    rows = _all(d, "#pairs tr.pair-row")
+    mine = [v for v in pairs.values() if v["ground"] == best["ground"]]
+    mine.sort(key=lambda v: -(v["num_inliers"] if v["num_inliers"] is not None else v["num_matches"]))
+    assert len(rows) == len(mine)
+    green = "return document.getElementById('pair-canvas').dataset.green"
+    first = mine[0]
+    _wait(d, lambda d: d.execute_script(green) is not None, 30, "the match picture")
+    assert _by(d, "#colour-by").is_displayed() and _by(d, "#colour-by").get_attribute("value") == "truth"
+    assert int(d.execute_script(green)) == sum(first["truth"])
+    assert "correct under the ground truth" in _by(d, "#pair-info").text
+    d.save_screenshot(str(shots / "report-ground-1280.png"))
+    # by verification: green are the verified matches
+    d.execute_script("const s = document.getElementById('colour-by'); s.value = 'verification';"
+                     "s.dispatchEvent(new Event('change'));")  # fmt: skip
+    want = sum(first["inliers"]) if first["inliers"] is not None else 0
+    _wait(d, lambda d: int(d.execute_script(green)) == want, 30, "the verification colours")
+    d.set_window_size(390, 844)
+    d.get(path.as_uri() + "#/jobs/demo-job")
+    _wait(d, lambda d: _all(d, "#evaluation-table"), 30, "the report on a phone")
+    assert (
+        d.execute_script("return document.documentElement.scrollWidth")
+        <= d.execute_script("return window.innerWidth") + 1
+    )
+    d.save_screenshot(str(shots / "report-job-390.png"))
+    d.set_window_size(1280, 800)
+    assert _console_errors(d) == []

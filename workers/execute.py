@@ -381,27 +381,32 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _record_artifacts(session: Any, info: JobInfo, job: Any, stage: str) -> int:
-    n = 0
+def artifact_files(root: Path, stage: str) -> list[tuple[str, str, Path]]:
+    """(name relative to the job folder, kind, path) of the artifacts a finished stage left in `root`."""
+    out = []
     for pattern, kind in ARTIFACTS.get(stage, []):
         if "*" in pattern:  # folder/* or folder/*.png: the files of one folder
-            files = sorted(p for p in job.root.glob(pattern) if p.is_file())
+            files = sorted(p for p in root.glob(pattern) if p.is_file())
         else:
-            files = [job.root / pattern] if (job.root / pattern).is_file() else []
-        for p in files:
-            rel = p.relative_to(job.root).as_posix()
-            crud.record_artifact(
-                session,
-                info.id,
-                kind,
-                rel,
-                jobsync.files_key(info.prefix, rel),
-                size_bytes=p.stat().st_size,
-                sha256=_sha256(p),
-                content_type=jobsync.content_type(p),
-            )
-            n += 1
-    return n
+            files = [root / pattern] if (root / pattern).is_file() else []
+        out += [(p.relative_to(root).as_posix(), kind, p) for p in files]
+    return out
+
+
+def _record_artifacts(session: Any, info: JobInfo, job: Any, stage: str) -> int:
+    files = artifact_files(job.root, stage)
+    for rel, kind, p in files:
+        crud.record_artifact(
+            session,
+            info.id,
+            kind,
+            rel,
+            jobsync.files_key(info.prefix, rel),
+            size_bytes=p.stat().st_size,
+            sha256=_sha256(p),
+            content_type=jobsync.content_type(p),
+        )
+    return len(files)
 
 
 # -- units ---------------------------------------------------------------------------------------

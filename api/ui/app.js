@@ -2,12 +2,15 @@
 //   #/projects  #/projects/{id}  #/jobs/{id}  #/jobs/{id}/map  #/jobs/{id}/ground/{file}
 // The API key lives in sessionStorage and goes in the Authorization header of every request; the job's
 // event stream is read with fetch (EventSource cannot send headers).
+// A static report (`midview demo`'s report.html, cli/report_page.py) carries the API's answers for one job in
+// #midview-snapshot: the same pages then read those, read only, from the file system.
 
 const STAGES = ["aerial_sfm", "train_splat", "plan_views", "render_views", "match_views", "reduce", "combined_sfm",
   "splat_all"];
 const main = document.getElementById("main");
 const nav = document.getElementById("nav");
-let key = sessionStorage.getItem("midview-key");
+const SNAP = (() => { const el = document.getElementById("midview-snapshot"); return el ? JSON.parse(el.textContent) : null; })();
+let key = SNAP ? "static report" : sessionStorage.getItem("midview-key");
 let leaving = [];  // cleanups of the current page (event streams)
 
 // -- helpers -------------------------------------------------------------------------------------
@@ -39,7 +42,15 @@ function detail(body) {
   return JSON.stringify(d);
 }
 class ApiError extends Error { constructor(status, body) { super(detail(body)); this.status = status; this.body = body; } }
+async function snapshotAnswer(method, path, raw) {  // a static report's recorded answer
+  const p = path.split("?")[0];
+  if (method !== "GET") throw new ApiError(405, "a static report is read only: run midview serve to change anything");
+  if (p in SNAP.json) return raw ? new Response(JSON.stringify(SNAP.json[p])) : structuredClone(SNAP.json[p]);
+  if (p in SNAP.blobs && raw) return fetch(SNAP.blobs[p]);
+  throw new ApiError(404, `not in this report: ${p}`);
+}
 async function api(method, path, body, raw = false) {
+  if (SNAP) return snapshotAnswer(method, path, raw);
   const opts = { method, headers: { Authorization: `Bearer ${key}` } };
   if (body instanceof FormData) opts.body = body;
   else if (body !== undefined) { opts.body = JSON.stringify(body); opts.headers["Content-Type"] = "application/json"; }
@@ -59,11 +70,13 @@ function outcomeText(o) {
   return [g, a].filter(Boolean).join(", ");
 }
 async function authedUrl(path) {  // a blob: URL of an API download (it needs the key)
+  if (SNAP) { if (path in SNAP.blobs) return SNAP.blobs[path]; throw new ApiError(404, `not in this report: ${path}`); }
   const r = await api("GET", path, undefined, true);
   return URL.createObjectURL(await r.blob());
 }
-function isApiUrl(url) { return new URL(url, location.href).origin === location.origin; }
+function isApiUrl(url) { return SNAP ? url in SNAP.blobs || url in SNAP.json : new URL(url, location.href).origin === location.origin; }
 async function downloadArtifact(a) {
+  if (SNAP && !isApiUrl(a.download_url)) { window.open(a.download_url, "_blank"); return; }  // a file beside the report
   const url = isApiUrl(a.download_url) ? await authedUrl(a.download_url) : a.download_url;
   const link = h("a", { href: url, download: a.name.split("/").pop() });
   document.body.append(link); link.click(); link.remove();
@@ -253,11 +266,11 @@ async function projectPage(pid) {
   } }, "Start job");
   main.replaceChildren(
     h("h1", {}, p.name), counts,
-    h("section", { class: "grid2" }, uploader(pid, "aerial", refresh), uploader(pid, "ground", refresh)),
+    ...(SNAP ? [] : [h("section", { class: "grid2" }, uploader(pid, "aerial", refresh), uploader(pid, "ground", refresh)),
     h("section", { class: "grid2" },
       h("div", {}, h("h2", {}, "POS"), h("p", { class: "muted" }, "CSV, ODM geo.txt or JSON; every row is checked before it is stored"), posInput, posResult),
       h("div", {}, h("h2", {}, "Intrinsics"), h("p", { class: "muted" }, "cameras.json (optional with EXIF focal lengths)"), camInput)),
-    h("section", {}, h("h2", {}, "New job"), h("p", { class: "muted" }, "job options as JSON (GET /options lists them)"), options, h("p"), start),
+    h("section", {}, h("h2", {}, "New job"), h("p", { class: "muted" }, "job options as JSON (GET /options lists them)"), options, h("p"), start)]),
     h("section", {}, h("h2", {}, "Jobs"), h("table", { id: "jobs" }, h("tbody", {}, jobs.map((j) => h("tr", {},
       h("td", {}, h("a", { href: `#/jobs/${j.id}` }, j.id.slice(0, 8))), h("td", { class: `status ${j.status}` }, j.status),
       h("td", {}, outcomeText(j.outcome)), h("td", { class: "muted hide-phone" }, new Date(j.created_at).toLocaleString())))))));
@@ -265,6 +278,7 @@ async function projectPage(pid) {
 
 // -- a job ---------------------------------------------------------------------------------------------
 async function follow(jobId, onEvent) {  // the job's server-sent events, read with fetch; reconnects
+  if (SNAP) return;  // a static report's job is finished
   const ctrl = new AbortController();
   leaving.push(() => ctrl.abort());
   for (let wait = 500; !ctrl.signal.aborted; wait = Math.min(2 * wait, 10000)) {
@@ -309,6 +323,14 @@ function stageRows(job) {
       h("td", { class: "bad" }, run && run.error ? run.error.slice(0, 300) : ""));
   });
 }
+function evaluationSection(ev) {  // a static report's table of the methods against the ground truth
+  return h("section", { id: "evaluation" }, h("h2", {}, ev.title),
+    h("div", { class: "scroll" }, h("table", { id: "evaluation-table" },
+      h("thead", {}, h("tr", {}, ev.columns.map((c, i) => h("th", { class: i ? "num" : "" }, c)))),
+      h("tbody", {}, ev.rows.map((r) => h("tr", { class: "evaluation-row" }, r.map((v, i) => h("td", { class: i ? "num" : "" }, v))))))),
+    (ev.notes || []).map((n) => h("p", { class: "muted" }, n)),
+    (ev.pictures || []).map((p) => h("figure", { class: "evaluation-picture" }, h("img", { class: "photo", src: p.src, alt: p.caption }), h("figcaption", { class: "muted" }, p.caption))));
+}
 async function jobPage(jobId) {
   let job = await api("GET", `/jobs/${jobId}`);
   const project = await api("GET", `/projects/${job.project_id}`);
@@ -346,7 +368,8 @@ async function jobPage(jobId) {
   };
   main.replaceChildren(
     h("h1", {}, `Job ${jobId.slice(0, 8)} of ${project.name}`),
-    h("section", {}, h("div", { class: "row" }, status, pct, cancel, from, rerun), h("p"), overall, outcome,
+    SNAP && SNAP.evaluation ? evaluationSection(SNAP.evaluation) : "",
+    h("section", {}, h("div", { class: "row" }, status, pct, SNAP ? "" : [cancel, from, rerun]), h("p"), overall, outcome,
       h("table", {}, h("thead", {}, h("tr", {}, h("th", {}, "stage"), h("th", {}, "status"), h("th", {}, "progress"), h("th", { class: "num" }, "time"), h("th", {}, ""))), stages)),
     h("section", {}, h("h2", {}, "Log"), log),
     h("section", {}, h("h2", {}, "Results"), h("table", {}, arts)));
@@ -438,18 +461,26 @@ async function mapPage(jobId) {
           h("td", {}, q.p.reason || "")))))));
 }
 function loadImage(url) { return new Promise((res, rej) => { const im = new Image(); im.onload = () => res(im); im.onerror = rej; im.src = url; }); }
-async function drawPair(canvas, jobId, pid, pair) {
+// a match's colour: by the ground truth where the report has it (synthetic surveys), else by verification
+const lineColour = (m, i, by) => {
+  const flags = by === "truth" && m.truth ? m.truth : m.inliers;
+  return flags ? (flags[i] ? "#22c55e" : "#ef4444") : "#facc15";
+};
+async function drawPair(canvas, jobId, pid, pair, by = "verification") {
   const m = await api("GET", `/jobs/${jobId}/pairs/aerial/${encodeURIComponent(pair.aerial.split("/")[1])}/ground/${encodeURIComponent(pair.ground.split("/")[1])}`);
   const [A, G] = await Promise.all([pair.aerial, pair.ground].map(async (n) => loadImage(await authedUrl(`/projects/${pid}/images/${n}/download`))));
   const k = G.height / A.height;  // the aerial image scaled to the ground image's height, side by side
+  const ka = (A.width / m.aerial_size[0]) * k, kg = G.width / m.ground_size[0];  // keypoints are full-resolution pixels
   canvas.width = A.width * k + G.width; canvas.height = G.height;
   const ctx = canvas.getContext("2d");
   ctx.drawImage(A, 0, 0, A.width * k, G.height); ctx.drawImage(G, A.width * k, 0);
   m.aerial_xy.forEach(([ax, ay], i) => {
     const [gx, gy] = m.ground_xy[i];
-    ctx.strokeStyle = m.inliers ? (m.inliers[i] ? "#22c55e" : "#ef4444") : "#facc15";
-    ctx.beginPath(); ctx.moveTo(ax * k, ay * k); ctx.lineTo(A.width * k + gx, gy); ctx.stroke();
+    ctx.strokeStyle = lineColour(m, i, by);
+    ctx.beginPath(); ctx.moveTo(ax * ka, ay * ka); ctx.lineTo(A.width * k + gx * kg, gy * kg); ctx.stroke();
   });
+  canvas.dataset.green = m.aerial_xy.filter((_, i) => lineColour(m, i, by) === "#22c55e").length;
+  canvas.dataset.red = m.aerial_xy.filter((_, i) => lineColour(m, i, by) === "#ef4444").length;
   return m;
 }
 async function groundPage(jobId, file) {
@@ -475,9 +506,18 @@ async function groundPage(jobId, file) {
   const photo = h("img", { class: "photo", id: "ground-photo", alt: name, src: await authedUrl(`/projects/${job.project_id}/images/${name}/download`) });
   const canvas = h("canvas", { class: "matches", id: "pair-canvas" });
   const pairInfo = h("p", { class: "muted", id: "pair-info" });
+  const colourBy = h("select", { id: "colour-by", onchange: () => current && show(current) },
+    h("option", { value: "verification" }, "colour: verified (green) or not (red)"),
+    h("option", { value: "truth" }, "colour: correct under the ground truth (green) or not (red)"));
+  let current = null;
   const show = async (p) => {
-    try { const m = await drawPair(canvas, jobId, job.project_id, p); pairInfo.textContent = `${p.aerial}: ${m.num_matches} matches` + (m.inliers ? `, ${m.inliers.filter(Boolean).length} verified (green)` : ""); }
-    catch (x) { pairInfo.textContent = x.message; }
+    current = p;
+    try {
+      const m = await drawPair(canvas, jobId, job.project_id, p, colourBy.value);
+      colourBy.hidden = !m.truth;
+      const truth = m.truth ? `, ${m.truth.filter(Boolean).length} correct under the ground truth` : "";
+      pairInfo.textContent = `${p.aerial}: ${m.num_matches} matches` + (m.inliers ? `, ${m.inliers.filter(Boolean).length} verified` : "") + truth;
+    } catch (x) { pairInfo.textContent = x.message; }
   };
   const p = me ? me.properties : null;
   main.replaceChildren(
@@ -495,15 +535,17 @@ async function groundPage(jobId, file) {
       h("table", { id: "pairs" }, h("tbody", {}, pairs.map((q) => h("tr", { class: "pair-row" },
         h("td", {}, h("button", { class: "link", onclick: () => show(q) }, q.aerial)),
         h("td", { class: "num" }, `${q.num_matches} matches`), h("td", { class: "num" }, q.num_inliers !== null ? `${q.num_inliers} verified` : ""))))),
-      pairInfo, canvas));
+      colourBy, pairInfo, canvas));
   canvas.hidden = !pairs.length;
+  colourBy.hidden = true;
+  if (SNAP) colourBy.value = "truth";  // a static report of a synthetic survey: the truth first, where it has it
   if (pairs.length) show(pairs[0]);
 }
 
 // -- the 3D view -------------------------------------------------------------------------------------
 async function artifactBytes(jobId, name) {
   const a = (await api("GET", `/jobs/${jobId}/artifacts`)).find((x) => x.name === name);
-  if (!a) return null;
+  if (!a || (SNAP && !isApiUrl(a.download_url))) return null;  // a static report links large files instead
   const r = isApiUrl(a.download_url) ? await api("GET", a.download_url, undefined, true) : await fetch(a.download_url);
   return r.arrayBuffer();
 }
@@ -518,7 +560,7 @@ async function page3d(jobId) {
   const [las, opk] = await Promise.all([artifactBytes(jobId, "combined/gis/points.las"), artifactBytes(jobId, "combined/gis/cameras_opk.txt")]);
   if (!las || !opk) { info.textContent = "no combined model yet"; return; }
   let view;
-  try { view = await import("./view3d.js"); }
+  try { view = await import(SNAP ? "midview/view3d" : "./view3d.js"); }
   catch (x) { info.textContent = `the 3D library is not installed (scripts/setup.sh installs it): ${x.message}`; return; }
   const points = view.parseLas(las), cams = view.parseOpk(new TextDecoder().decode(opk));
   info.textContent = `${points.count} points, ${cams.filter((c) => c.set === "aerial").length} aerial and ${cams.filter((c) => c.set === "ground").length} ground cameras`;
@@ -532,7 +574,10 @@ async function page3d(jobId) {
   main.append(h("section", {}, h("h2", {}, "3D Gaussian Splatting model of the aerial images"), splatInfo, splatBox));
   const art = (await api("GET", `/jobs/${jobId}/artifacts`)).find((a) => a.name === "splat/point_cloud.ply");
   if (!art) { splatInfo.textContent = "no 3DGS model in this job"; return; }
-  if (art.size_bytes > 64e6) { splatInfo.textContent = `the 3DGS model is ${fmtBytes(art.size_bytes)}: download it from the job's results`; return; }
+  if (art.size_bytes > 64e6 || (SNAP && !isApiUrl(art.download_url))) {
+    splatInfo.replaceChildren(`the 3DGS model is ${fmtBytes(art.size_bytes)}: `, h("a", { href: art.download_url }, art.name), SNAP ? " (a file beside this report)" : " (the job's results)");
+    return;
+  }
   const ply = view.parsePly(await artifactBytes(jobId, "splat/point_cloud.ply"));
   splatInfo.textContent = `${ply.count} of ${ply.total} Gaussians (those with opacity over 0.2), at their centres with their base colour`;
   const stopSplat = view.draw(splatBox, ply, []);
@@ -544,8 +589,9 @@ async function page3d(jobId) {
 async function route() {
   for (const f of leaving) f();
   leaving = [];
-  document.getElementById("signout").hidden = !key;
+  document.getElementById("signout").hidden = !key || !!SNAP;
   if (!key) return signIn();
+  if (SNAP && !location.hash) history.replaceState(null, "", SNAP.start);
   const parts = location.hash.replace(/^#\/?/, "").split("/").map(decodeURIComponent);
   try {
     if (parts[0] === "projects" && parts[1]) await projectPage(parts[1]);
