@@ -41,8 +41,7 @@ confs: dict[str, dict[str, Any]] = {
         "depth_width": 480,  # width of the sources' 3DGS depth maps (visibility only)
         "resolution_weight_deg": 10.0,  # penalty per doubling of the source's ground sampling distance
         "max_angle_deg": 75.0,  # a source more than this off the view's ray is not used
-        "blend_deg": 0.0,  # >0: soft blend of the two best sources within this penalty difference
-        "cache_images": 16,  # full-resolution source images held in memory
+        "cache_mb": 1500,  # source image pyramids held in memory (uint8)
     },
 }
 
@@ -54,11 +53,11 @@ def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray, cols: int = 4096) -> 
     32767 columns: the points go in rows of `cols`)."""
     n = len(x)
     rows = max(1, -(-n // cols))
-    mx = np.zeros(rows * cols, np.float32)
-    my = np.zeros(rows * cols, np.float32)
+    mx = np.full(rows * cols, -1e4, np.float32)  # padding samples fall outside: constant, unused
+    my = np.full(rows * cols, -1e4, np.float32)
     mx[:n], my[:n] = x, y
     out = cv2.remap(
-        img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+        img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )
     return out.reshape(rows * cols, -1)[:n]
 
@@ -76,11 +75,18 @@ class SourceImages:
             if not img.has_pose:
                 continue
             m = img.cam_from_world().matrix()
+            cam = img.camera
+            pinhole = None
+            extra = np.asarray(cam.params)[list(cam.extra_params_idxs())]
+            if not np.any(extra):  # no distortion (PINHOLE, or a radial model with k = 0)
+                K = cam.calibration_matrix()
+                pinhole = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
             self.sources.append(
                 {
                     "name": img.name,
-                    "camera": img.camera,
+                    "camera": cam,
                     "pose": Pose(m[:, :3].copy(), m[:, 3].copy()),
+                    "pinhole": pinhole,
                 }
             )
         self._pyramids: OrderedDict[str, list[np.ndarray]] = OrderedDict()
@@ -88,18 +94,19 @@ class SourceImages:
 
     # -- cached inputs ---------------------------------------------------------------------------
     def pyramid(self, name: str) -> list[np.ndarray]:
-        """RGB float32 levels of a source image: full resolution, then halved until 256 px."""
+        """RGB uint8 levels of a source image: full resolution, then halved until 256 px."""
         if name in self._pyramids:
             self._pyramids.move_to_end(name)
             return self._pyramids[name]
         bgr = cv2.imread(str(self.image_dir / name), cv2.IMREAD_COLOR)
         if bgr is None:
             raise FileNotFoundError(f"source image {self.image_dir / name} is missing or unreadable")
-        levels = [cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32)]
+        levels = [cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)]
         while min(levels[-1].shape[:2]) > 256:
             levels.append(cv2.pyrDown(levels[-1]))
         self._pyramids[name] = levels
-        while len(self._pyramids) > int(self.conf["cache_images"]):
+        size = lambda: sum(lv.nbytes for ls in self._pyramids.values() for lv in ls)  # noqa: E731
+        while len(self._pyramids) > 1 and size() > float(self.conf["cache_mb"]) * 1e6:
             self._pyramids.popitem(last=False)
         return levels
 
@@ -118,7 +125,51 @@ class SourceImages:
             self._depths[src["name"]] = (np.asarray(depth_fn(small, src["pose"]), np.float32), s)
         return self._depths[src["name"]]
 
+    @staticmethod
+    def _inside(src: dict, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(indices of the points X (N, 3) in front of the source and inside its image, their pixels in
+        COLMAP convention, their z-depths)."""
+        sp: Pose = src["pose"]
+        cam = src["camera"]
+        Xc = X @ sp.R.T.astype(X.dtype) + sp.t.astype(X.dtype)
+        z = Xc[:, 2]
+        idx = np.nonzero(z > 1e-3)[0]
+        if len(idx) == 0:
+            return idx, np.zeros((0, 2)), np.zeros(0)
+        if src["pinhole"] is not None:  # no distortion: K alone (pycolmap's projection is slower)
+            fx, fy, cx, cy = src["pinhole"]
+            q = Xc[idx]
+            uv = np.stack([fx * q[:, 0] / q[:, 2] + cx, fy * q[:, 1] / q[:, 2] + cy], 1)
+        else:
+            uv = cam.img_from_cam(Xc[idx])
+        ok = np.all(np.isfinite(uv), axis=1)
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height - 1)
+        return idx[ok], uv[ok], z[idx[ok]]
+
     # -- colour ----------------------------------------------------------------------------------
+    def _score(
+        self, src: dict, X: np.ndarray, ray_v: np.ndarray, depth_fn: DepthFn
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The points X (N, 3) the source sees (in its image, within max_angle_deg of the view's rays
+        ray_v (N, 3), not hidden in its 3DGS depth): (indices, pixels, penalties, metres per pixel)."""
+        c = self.conf
+        idx, uv, z = self._inside(src, X)
+        if len(idx) == 0:
+            return idx, uv, z, z
+        ray_s = X[idx] - src["pose"].center
+        cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx]) / np.linalg.norm(ray_s, axis=1)
+        dmap, s = self.depth(src, depth_fn)
+        du = np.clip((uv[:, 0] * s).astype(int), 0, dmap.shape[1] - 1)
+        dv = np.clip((uv[:, 1] * s).astype(int), 0, dmap.shape[0] - 1)
+        ds = dmap[dv, du]
+        ok = cosang >= np.cos(np.radians(float(c["max_angle_deg"])))
+        ok &= (ds > 0) & (z <= ds * (1.0 + float(c["visibility_rel"])) + float(c["visibility_abs_m"]))
+        idx, uv, z, cosang = idx[ok], uv[ok], z[ok], cosang[ok]
+        gsd = z / float(src["camera"].mean_focal_length())
+        angle = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+        penalty = angle + float(c["resolution_weight_deg"]) * np.log2(np.maximum(gsd, 1e-6))
+        return idx, uv, penalty, gsd
+
     def colour(
         self,
         camera: Camera,
@@ -130,97 +181,46 @@ class SourceImages:
         """RGB uint8 (H, W, 3) of the view: each pixel with depth > 0 from its best visible source,
         the others (and those no source sees) from `fallback` (uint8 (H, W, 3)). Returns the image and
         figures (fraction of pixels coloured from sources, sources used)."""
-        c = self.conf
         H, W = depth.shape
         vi, ui = np.nonzero(depth > 0)
-        out = fallback.astype(np.float32).copy()
         if len(vi) == 0:
             return fallback, {"source_fraction": 0.0, "sources_used": 0}
-        K = camera.K
         uv_v = np.stack([ui + 0.5, vi + 0.5], 1).astype(np.float64)  # pixel centres, COLMAP convention
-        X = pose.unproject(K, uv_v, depth[vi, ui].astype(float))
-        C = pose.center
-        ray_v = X - C
-        dist_v = np.linalg.norm(ray_v, axis=1)
-        ray_v /= dist_v[:, None]
-        gsd_v = depth[vi, ui] / K[0, 0]  # metres per view pixel (at the point, along the axis)
+        X = pose.unproject(camera.K, uv_v, depth[vi, ui].astype(float)).astype(np.float32)
+        ray_v = X - pose.center.astype(np.float32)
+        ray_v /= np.linalg.norm(ray_v, axis=1, keepdims=True)
+        gsd_v = depth[vi, ui] / camera.K[0, 0]  # metres per view pixel (at the point, along the axis)
         n = len(X)
-        best = np.full(n, np.inf)
-        second = np.full(n, np.inf)
-        best_i = np.full(n, -1, np.int32)
-        second_i = np.full(n, -1, np.int32)
-        samples: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        cos_max = np.cos(np.radians(float(c["max_angle_deg"])))
+        # the candidates: sources that are the best for some of a sparse sample of the points
+        step = max(1, n // 4000)
+        probe_best = np.full(len(X[::step]), np.inf)
+        probe_arg = np.full(len(X[::step]), -1)
         for si, src in enumerate(self.sources):
-            sp: Pose = src["pose"]
-            cam = src["camera"]
-            Xc = X @ sp.R.T + sp.t
-            z = Xc[:, 2]
-            front = z > 1e-3
-            if not front.any():
-                continue
-            idx = np.nonzero(front)[0]
-            uv = cam.img_from_cam(Xc[idx])
-            ok = np.all(np.isfinite(uv), axis=1)
-            ok &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height - 1)
-            idx, uv = idx[ok], uv[ok]
-            if len(idx) < 0.002 * n:
-                continue
-            ray_s = X[idx] - sp.center
-            ray_s /= np.linalg.norm(ray_s, axis=1, keepdims=True)
-            cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx])
-            ok = cosang >= cos_max
-            idx, uv, cosang = idx[ok], uv[ok], cosang[ok]
-            if len(idx) == 0:
-                continue
-            dmap, s = self.depth(src, depth_fn)
-            du = np.clip((uv[:, 0] * s).astype(int), 0, dmap.shape[1] - 1)
-            dv = np.clip((uv[:, 1] * s).astype(int), 0, dmap.shape[0] - 1)
-            ds = dmap[dv, du]
-            zs = z[idx]
-            vis = (ds > 0) & (zs <= ds * (1.0 + float(c["visibility_rel"])) + float(c["visibility_abs_m"]))
-            idx, uv, cosang, zs = idx[vis], uv[vis], cosang[vis], zs[vis]
-            if len(idx) == 0:
-                continue
-            f_s = float(cam.mean_focal_length())
-            gsd_s = zs / f_s
-            angle = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
-            penalty = angle + float(c["resolution_weight_deg"]) * np.log2(np.maximum(gsd_s, 1e-6))
-            # keep the two best sources per pixel
-            better = penalty < best[idx]
-            mid = ~better & (penalty < second[idx])
-            sub = idx[better]
-            second[sub], second_i[sub] = best[sub], best_i[sub]
-            best[sub], best_i[sub] = penalty[better], si
-            sub2 = idx[mid]
-            second[sub2], second_i[sub2] = penalty[mid], si
-            samples[si] = (idx, uv, gsd_s / gsd_v[idx])
-        colour = np.zeros((n, 3), np.float32)
-        weight = np.zeros(n, np.float32)
-        blend = float(c["blend_deg"])
+            idx, _, pen, _ = self._score(src, X[::step], ray_v[::step], depth_fn)
+            win = pen < probe_best[idx]
+            probe_best[idx[win]], probe_arg[idx[win]] = pen[win], si
+        wins = np.bincount(probe_arg[probe_arg >= 0], minlength=len(self.sources))
+        chosen = [si for si in np.argsort(-wins) if wins[si] > 0]
+        best = np.full(n, np.inf, np.float32)
+        best_i = np.full(n, -1, np.int32)
+        scored = {}
+        for si in chosen:
+            idx, uv, pen, gsd = self._score(self.sources[si], X, ray_v, depth_fn)
+            win = pen < best[idx]
+            best[idx[win]], best_i[idx[win]] = pen[win], si
+            scored[si] = (idx, uv, gsd / gsd_v[idx])
+        out = fallback.copy()
         used = 0
-        for si, (idx, uv, ratio) in samples.items():
-            w = np.where(best_i[idx] == si, 1.0, 0.0)
-            if blend > 0:
-                d = best[idx] - second[idx]
-                w_second = np.clip(1.0 - (-d) / blend, 0.0, 1.0) * 0.5
-                w = np.where(best_i[idx] == si, 1.0, np.where(second_i[idx] == si, w_second, 0.0))
-            take = w > 0
+        for si, (idx, uv, ratio) in scored.items():
+            take = best_i[idx] == si
             if not take.any():
                 continue
-            used += int((best_i[idx] == si).any())
-            idx, uv, ratio, w = idx[take], uv[take], ratio[take], w[take]
+            used += 1
+            idx, uv, ratio = idx[take], uv[take], ratio[take]
             levels = self.pyramid(self.sources[si]["name"])
             # source pixels per view pixel: 1/ratio; sample the level where that is about 1
             lvl = int(np.clip(np.floor(np.log2(max(np.median(1.0 / ratio), 1.0))), 0, len(levels) - 1))
-            img = levels[lvl]
-            scale = 1.0 / (2**lvl)
-            mx = (uv[:, 0] * scale - 0.5).astype(np.float32)  # COLMAP pixel coordinates -> OpenCV's
-            my = (uv[:, 1] * scale - 0.5).astype(np.float32)
-            val = _sample(img, mx, my)
-            colour[idx] += w[:, None] * val
-            weight[idx] += w
-        has = weight > 0
-        out[vi[has], ui[has]] = colour[has] / weight[has, None]
-        rgb = np.clip(np.rint(out), 0, 255).astype(np.uint8)
-        return rgb, {"source_fraction": float(has.sum() / (H * W)), "sources_used": used}
+            scale = 1.0 / (2**lvl)  # COLMAP pixel coordinates -> OpenCV's at that level
+            out[vi[idx], ui[idx]] = _sample(levels[lvl], uv[:, 0] * scale - 0.5, uv[:, 1] * scale - 0.5)
+        has = best_i >= 0
+        return out, {"source_fraction": float(has.sum() / (H * W)), "sources_used": used}
