@@ -1,5 +1,6 @@
 """`midview run` (the whole pipeline on a survey, in-process, each stage cached in the job folder) and
-`midview demo` (a synthetic survey, the pipeline, the direct baselines, one table and report.html).
+`midview demo` (a synthetic survey, the pipeline, the direct baselines, one table and report.html: the
+dashboard's page of the job, static).
 
 Register in cli/main.py:
 
@@ -420,7 +421,8 @@ def demo(
     ),
 ) -> None:
     """Synthesize a survey, run midview and the direct baselines on it, print one table (NIM, NCM,
-    GT-correct, precision, NMP, NRI of ground images) and write OUT/report.html with match pictures."""
+    GT-correct, precision, NMP, NRI of ground images) and write OUT/report.html: the dashboard's page of
+    the job, static and self-contained, with that table and match pictures."""
     from rich.console import Console
 
     from services import pipeline, synth

@@ -41,11 +41,51 @@ confs: dict[str, dict[str, Any]] = {
         "depth_width": 480,  # width of the sources' 3DGS depth maps (visibility only)
         "resolution_weight_deg": 10.0,  # penalty per doubling of the source's ground sampling distance
         "max_angle_deg": 75.0,  # a source more than this off the view's ray is not used
-        "cache_mb": 1500,  # source image pyramids held in memory (uint8)
+        # the two best sources must agree on a point's colour (mean absolute difference over 7x7 pixels
+        # below this many grey levels): where the 3DGS's depth is off they see different surfaces
+        "consistency": 12.0,
+        "cache_mb": 1500,
+        # plane sweep of the view's depth (None: the 3DGS's depth as it is): depth factors tried, at
+        # this width, with the sources that colour most of the view
+        "sweep_range": [0.75, 1.33],
+        "sweep_steps": 25,
+        "sweep_width": 384,
+        "sweep_sources": 4,
+        "sweep_ratio": 0.7,
+        "sweep": True,  # source image pyramids held in memory (uint8)
     },
 }
 
 DepthFn = Callable[[Camera, Pose], np.ndarray]
+
+
+def _two_best(n: int, scored: list[tuple[int, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """The best and second best (lowest penalty) source of each of n points, -1 where none, from
+    (source index, point indices, penalties) per source."""
+    best = np.full(n, np.inf, np.float32)
+    second = np.full(n, np.inf, np.float32)
+    best_i = np.full(n, -1, np.int32)
+    second_i = np.full(n, -1, np.int32)
+    for si, idx, pen in scored:
+        win = pen < best[idx]
+        mid = ~win & (pen < second[idx])
+        w, m = idx[win], idx[mid]
+        second[w], second_i[w] = best[w], best_i[w]
+        best[w], best_i[w] = pen[win], si
+        second[m], second_i[m] = pen[mid], si
+    return best_i, second_i
+
+
+def _robust_mean(costs: np.ndarray) -> np.ndarray:
+    """Per pixel, the mean of the best two thirds (at least one) of the finite costs (P, H, W) of the
+    source pairs that see it; inf where none does."""
+    srt = np.sort(costs, axis=0)
+    finite = np.isfinite(srt)
+    n = finite.sum(axis=0)
+    keep = np.maximum(1, np.rint(n * 2.0 / 3.0)).astype(int)
+    csum = np.cumsum(np.where(finite, srt, 0.0), axis=0)
+    total = np.take_along_axis(csum, (keep - 1)[None], 0)[0]
+    return np.where(n > 0, total / keep, np.inf).astype(np.float32)
 
 
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray, cols: int = 4096) -> np.ndarray:
@@ -91,6 +131,7 @@ class SourceImages:
             )
         self._pyramids: OrderedDict[str, list[np.ndarray]] = OrderedDict()
         self._depths: dict[str, tuple[np.ndarray, float]] = {}
+        self._greys: dict[tuple[str, int], np.ndarray] = {}
 
     # -- cached inputs ---------------------------------------------------------------------------
     def pyramid(self, name: str) -> list[np.ndarray]:
@@ -146,6 +187,90 @@ class SourceImages:
         ok &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height - 1)
         return idx[ok], uv[ok], z[idx[ok]]
 
+    @staticmethod
+    def _consistent(
+        first: np.ndarray, second: np.ndarray, vi: np.ndarray, ui: np.ndarray, shape: tuple, limit: float
+    ) -> np.ndarray:
+        """Which points (N,) the two best sources see alike: the mean absolute difference of their
+        colours (N, 3; NaN where no second source sees the point) over a 7x7 window below `limit` grey
+        levels (windows with no second source fail)."""
+        diff = np.zeros(shape, np.float32)
+        valid = np.zeros(shape, np.float32)
+        d = np.abs(first - second).mean(axis=1)
+        ok = np.isfinite(d)
+        diff[vi[ok], ui[ok]] = d[ok]
+        valid[vi[ok], ui[ok]] = 1.0
+        num = cv2.boxFilter(diff, -1, (7, 7), normalize=False)
+        den = cv2.boxFilter(valid, -1, (7, 7), normalize=False)
+        mean = np.where(den > 0, num / np.maximum(den, 1.0), np.inf)
+        return ok & (mean[vi, ui] <= limit)
+
+    # -- depth -----------------------------------------------------------------------------------
+    def grey(self, name: str, level: int) -> np.ndarray:
+        """A source's pyramid level as float32 grey with its local mean removed (9x9): exposure-free."""
+        key = (name, level)
+        if key not in self._greys:
+            g = cv2.cvtColor(self.pyramid(name)[level], cv2.COLOR_RGB2GRAY).astype(np.float32)
+            self._greys[key] = g - cv2.blur(g, (9, 9))
+            while len(self._greys) > 2 * len(self._pyramids):
+                self._greys.pop(next(iter(self._greys)))
+        return self._greys[key]
+
+    def sweep_depth(self, camera: Camera, pose: Pose, depth: np.ndarray, sources: list[int]) -> np.ndarray:
+        """The view's depth corrected by photo-consistency of the sources (plane sweep around the 3DGS's
+        depth): at a reduced size, each pixel's depth is scaled by the factor (of conf sweep_factors)
+        whose 3D point the sources see most alike (mean absolute difference of their exposure-free grey
+        values over 7x7 pixels, the best two thirds of the source pairs: one may be occluded); pixels
+        where no factor stands out keep the 3DGS's depth. The correction is upsampled to full size."""
+        c = self.conf
+        H, W = depth.shape
+        s = min(1.0, float(c["sweep_width"]) / W)
+        w, h = max(1, round(W * s)), max(1, round(H * s))
+        d0 = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+        K = camera.K * np.array([[s], [s], [1.0]])
+        v, u = np.mgrid[0:h, 0:w]
+        uv = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1).astype(np.float64)
+        rays = pose.unproject(K, uv, np.ones(len(uv))) - pose.center  # per unit z-depth
+        factors = np.geomspace(*c["sweep_range"], int(c["sweep_steps"]))
+        cost = np.full((len(factors), h, w), np.inf, np.float32)
+        pairs = [(a, b) for i, a in enumerate(sources) for b in sources[i + 1 :]]
+        for k, f in enumerate(factors):
+            X = (pose.center + rays * (d0.ravel() * f)[:, None]).astype(np.float32)
+            grey = {}
+            for si in sources:
+                src = self.sources[si]
+                idx, puv, _ = self._inside(src, X)
+                g = np.full(h * w, np.nan, np.float32)
+                grey[si] = g.reshape(h, w)
+                if len(idx) == 0:
+                    continue
+                # the pyramid level whose pixels are about the view's (metres per pixel at the points)
+                gsd_s = (
+                    np.median((X[idx] - src["pose"].center) @ src["pose"].R[2])
+                    / src["camera"].mean_focal_length()
+                )
+                gsd_v = np.median(d0.ravel()[idx]) * f / K[0, 0]
+                lvl = int(np.clip(np.floor(np.log2(max(gsd_v / max(gsd_s, 1e-9), 1.0))), 0, 3))
+                sc = 1.0 / 2**lvl
+                img = self.grey(src["name"], lvl)
+                g[idx] = _sample(img, puv[:, 0] * sc - 0.5, puv[:, 1] * sc - 0.5)[:, 0]
+                grey[si] = g.reshape(h, w)
+            sads = []
+            for a, b in pairs:
+                diff = np.abs(grey[a] - grey[b])
+                sads.append(
+                    np.where(np.isfinite(diff), cv2.blur(np.nan_to_num(diff, nan=1e3), (7, 7)), np.inf)
+                )
+            cost[k] = _robust_mean(np.stack(sads))
+        best = np.argmin(cost, axis=0)
+        c_best = np.take_along_axis(cost, best[None], 0)[0]
+        # a clear winner: the best cost well below the median over the factors, and finite
+        med = np.median(np.where(np.isfinite(cost), cost, np.nan), axis=0)
+        sure = np.isfinite(c_best) & (c_best < float(c["sweep_ratio"]) * med) & (d0 > 0)
+        ratio = np.where(sure, factors[best], 1.0).astype(np.float32)
+        ratio = cv2.medianBlur(ratio, 5)
+        return (depth * cv2.resize(ratio, (W, H), interpolation=cv2.INTER_LINEAR)).astype(np.float32)
+
     # -- colour ----------------------------------------------------------------------------------
     def _score(
         self, src: dict, X: np.ndarray, ray_v: np.ndarray, depth_fn: DepthFn
@@ -170,6 +295,20 @@ class SourceImages:
         penalty = angle + float(c["resolution_weight_deg"]) * np.log2(np.maximum(gsd, 1e-6))
         return idx, uv, penalty, gsd
 
+    def _ranked_sources(self, camera: Camera, pose: Pose, depth: np.ndarray, depth_fn: DepthFn) -> list[int]:
+        """The sources by how many of a sparse sample of the view's points they see best."""
+        vi, ui = np.nonzero(depth > 0)
+        step = max(1, len(vi) // 4000)
+        vi, ui = vi[::step], ui[::step]
+        uv = np.stack([ui + 0.5, vi + 0.5], 1).astype(np.float64)
+        X = pose.unproject(camera.K, uv, depth[vi, ui].astype(float)).astype(np.float32)
+        ray = X - pose.center.astype(np.float32)
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        scored = [(si, *self._score(src, X, ray, depth_fn)[::2]) for si, src in enumerate(self.sources)]
+        best_i, _ = _two_best(len(X), scored)
+        wins = np.bincount(best_i[best_i >= 0], minlength=len(self.sources))
+        return [int(si) for si in np.argsort(-wins) if wins[si] > 0]
+
     def colour(
         self,
         camera: Camera,
@@ -177,50 +316,55 @@ class SourceImages:
         depth: np.ndarray,
         fallback: np.ndarray,
         depth_fn: DepthFn,
-    ) -> tuple[np.ndarray, dict]:
+    ) -> tuple[np.ndarray, np.ndarray, dict]:
         """RGB uint8 (H, W, 3) of the view: each pixel with depth > 0 from its best visible source,
-        the others (and those no source sees) from `fallback` (uint8 (H, W, 3)). Returns the image and
-        figures (fraction of pixels coloured from sources, sources used)."""
+        the others (and those no source sees) from `fallback` (uint8 (H, W, 3)). With conf sweep, the
+        depth is first corrected by the sources' photo-consistency (sweep_depth). Returns the image, the
+        depth it used and figures (fraction of pixels coloured from sources, sources used)."""
         H, W = depth.shape
+        if not (depth > 0).any():
+            return fallback, depth, {"source_fraction": 0.0, "sources_used": 0}
+        if self.conf["sweep"]:
+            ranked = self._ranked_sources(camera, pose, depth, depth_fn)
+            depth = self.sweep_depth(camera, pose, depth, ranked[: int(self.conf["sweep_sources"])])
         vi, ui = np.nonzero(depth > 0)
-        if len(vi) == 0:
-            return fallback, {"source_fraction": 0.0, "sources_used": 0}
         uv_v = np.stack([ui + 0.5, vi + 0.5], 1).astype(np.float64)  # pixel centres, COLMAP convention
         X = pose.unproject(camera.K, uv_v, depth[vi, ui].astype(float)).astype(np.float32)
         ray_v = X - pose.center.astype(np.float32)
         ray_v /= np.linalg.norm(ray_v, axis=1, keepdims=True)
         gsd_v = depth[vi, ui] / camera.K[0, 0]  # metres per view pixel (at the point, along the axis)
         n = len(X)
-        # the candidates: sources that are the best for some of a sparse sample of the points
+        # the candidates: sources that are the best or second best for some of a sparse sample of the points
         step = max(1, n // 4000)
-        probe_best = np.full(len(X[::step]), np.inf)
-        probe_arg = np.full(len(X[::step]), -1)
-        for si, src in enumerate(self.sources):
-            idx, _, pen, _ = self._score(src, X[::step], ray_v[::step], depth_fn)
-            win = pen < probe_best[idx]
-            probe_best[idx[win]], probe_arg[idx[win]] = pen[win], si
-        wins = np.bincount(probe_arg[probe_arg >= 0], minlength=len(self.sources))
-        chosen = [si for si in np.argsort(-wins) if wins[si] > 0]
-        best = np.full(n, np.inf, np.float32)
-        best_i = np.full(n, -1, np.int32)
-        scored = {}
-        for si in chosen:
-            idx, uv, pen, gsd = self._score(self.sources[si], X, ray_v, depth_fn)
-            win = pen < best[idx]
-            best[idx[win]], best_i[idx[win]] = pen[win], si
-            scored[si] = (idx, uv, gsd / gsd_v[idx])
-        out = fallback.copy()
+        probe = [
+            (si, *self._score(src, X[::step], ray_v[::step], depth_fn)[::2])
+            for si, src in enumerate(self.sources)
+        ]
+        chosen = sorted({int(i) for i in np.concatenate(_two_best(len(X[::step]), probe)) if i >= 0})
+        scored = {si: self._score(self.sources[si], X, ray_v, depth_fn) for si in chosen}
+        best_i, second_i = _two_best(n, [(si, idx, pen) for si, (idx, _, pen, _) in scored.items()])
+        scored = {si: (idx, uv, gsd / gsd_v[idx]) for si, (idx, uv, _, gsd) in scored.items()}
+        first_rgb = np.zeros((n, 3), np.float32)
+        second_rgb = np.full((n, 3), np.nan, np.float32)
         used = 0
         for si, (idx, uv, ratio) in scored.items():
-            take = best_i[idx] == si
-            if not take.any():
+            take, take2 = best_i[idx] == si, second_i[idx] == si
+            if not (take.any() or take2.any()):
                 continue
-            used += 1
-            idx, uv, ratio = idx[take], uv[take], ratio[take]
+            used += int(take.any())
+            keep = take | take2
+            idx, uv, ratio, take = idx[keep], uv[keep], ratio[keep], take[keep]
             levels = self.pyramid(self.sources[si]["name"])
             # source pixels per view pixel: 1/ratio; sample the level where that is about 1
             lvl = int(np.clip(np.floor(np.log2(max(np.median(1.0 / ratio), 1.0))), 0, len(levels) - 1))
             scale = 1.0 / (2**lvl)  # COLMAP pixel coordinates -> OpenCV's at that level
-            out[vi[idx], ui[idx]] = _sample(levels[lvl], uv[:, 0] * scale - 0.5, uv[:, 1] * scale - 0.5)
+            val = _sample(levels[lvl], uv[:, 0] * scale - 0.5, uv[:, 1] * scale - 0.5).astype(np.float32)
+            first_rgb[idx[take]] = val[take]
+            second_rgb[idx[~take]] = val[~take]
         has = best_i >= 0
-        return out, {"source_fraction": float(has.sum() / (H * W)), "sources_used": used}
+        limit = self.conf["consistency"]
+        if limit is not None:  # the two best sources must agree where the point is: else the depth is off
+            has &= self._consistent(first_rgb, second_rgb, vi, ui, (H, W), float(limit))
+        out = fallback.copy()
+        out[vi[has], ui[has]] = np.clip(np.rint(first_rgb[has]), 0, 255).astype(np.uint8)
+        return out, depth, {"source_fraction": float(has.sum() / (H * W)), "sources_used": used}

@@ -91,7 +91,7 @@ class SplatRenderer:
     def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         rgb, depth = self.render_splat(camera, pose)
         if self.sources is not None:
-            rgb, self.last_stats = self.sources.colour(
+            rgb, depth, self.last_stats = self.sources.colour(
                 camera, pose, depth, rgb, lambda c, p: self.render_splat(c, p)[1]
             )
         return rgb, depth

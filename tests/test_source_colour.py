@@ -70,7 +70,7 @@ def test_a_view_coloured_through_the_true_depth_is_the_scene_seen_from_it(plane_
     view = look_at(np.array([-2.0, -9.0, 12.0]), np.array([0.0, 0.0, 0.0]))
     depth = _plane_depth(view_cam, view)
     fallback = np.zeros((300, 400, 3), np.uint8)
-    rgb, stats = src.colour(view_cam, view, depth, fallback, lambda c, p: _plane_depth(c, p))
+    rgb, _, stats = src.colour(view_cam, view, depth, fallback, lambda c, p: _plane_depth(c, p))
     truth = cv2.warpPerspective(tex, _plane_homography(view_cam, view), (400, 300), flags=cv2.INTER_LINEAR)
     truth = cv2.cvtColor(truth, cv2.COLOR_BGR2RGB)  # the sources were written as BGR, the view is RGB
     inner = np.zeros((300, 400), bool)
@@ -92,12 +92,12 @@ def test_hidden_points_and_points_no_source_sees_keep_the_fallback(plane_survey)
     fallback = np.full((150, 200, 3), 7, np.uint8)
     # every source's depth says a surface stands 5 m in front of the plane: nothing is visible
     occluded = lambda c, p: np.maximum(_plane_depth(c, p) - 5, 0)  # noqa: E731
-    rgb, stats = src.colour(view_cam, view, depth, fallback, occluded)
+    rgb, _, stats = src.colour(view_cam, view, depth, fallback, occluded)
     assert stats["source_fraction"] == 0.0 and (rgb == 7).all()
     # pixels without depth keep the fallback; the others take a source's colour
     depth[:, :100] = 0
     src2 = SourceImages(root / "sparse", root / "images")
-    rgb, stats = src2.colour(view_cam, view, depth, fallback, lambda c, p: _plane_depth(c, p))
+    rgb, _, stats = src2.colour(view_cam, view, depth, fallback, lambda c, p: _plane_depth(c, p))
     assert (rgb[:, :100] == 7).all() and (rgb[:, 120:] != 7).any(axis=2).mean() > 0.9
     assert 0.4 < stats["source_fraction"] <= 0.5
 

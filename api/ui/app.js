@@ -374,6 +374,7 @@ async function jobPage(jobId) {
     h("section", {}, h("h2", {}, "Log"), log),
     h("section", {}, h("h2", {}, "Results"), h("table", {}, arts)));
   await render();
+  if (SNAP) for (const r of job.stages) log.append(`${new Date(r.finished_at).toLocaleTimeString()}  ${r.status} ${r.stage} (${fmtS(r.duration_s)})\n`);
   let lastStage = job.current_stage;
   follow(jobId, async (ev, data) => {
     if (ev === "progress") {
