@@ -63,16 +63,6 @@ def ensure_scene(preset: str, seed: int, scene: Path, textures: Path | None) -> 
     return scene
 
 
-def renderer_settings(r: str) -> dict:
-    """Job settings of a renderer label: "gt", "splat" (the 3DGS's colour) or "splat+source" (colour from
-    the full-resolution aerial images through the 3DGS's depth, services.source_colour)."""
-    if r == "splat+source":
-        return {"renderer": "splat", "views": {"colour": "source"}}
-    if r == "splat":
-        return {"renderer": "splat", "views": {"colour": "splat"}}
-    return {"renderer": r}
-
-
 def make_job(root: Path, scene: Path, options: dict, settings: dict) -> pipeline.Job:
     return pipeline.Job.create(
         root,
@@ -178,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--scene", type=Path, help="a rendered scene folder (default: runs/bench/scene-<preset>-seed<seed>)"
     )
-    ap.add_argument("--renderers", default="gt,splat", help="comma-separated: gt, splat, splat+source")
+    ap.add_argument("--renderers", default="gt,splat", help="comma-separated: gt, splat")
     ap.add_argument(
         "--planners", default="paper,ground-aware,both", help="comma-separated: paper, ground-aware, both"
     )
@@ -261,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         out / "base",
         scene,
         {**options, "stages": ["aerial_sfm", "train_splat"]},
-        {**settings, "renderer": "splat" if any(r.startswith("splat") for r in renderers) else "gt"},
+        {**settings, "renderer": "splat" if "splat" in renderers else "gt"},
     )
     if args.adopt_sfm and not pipeline.is_done(base, "aerial_sfm"):
         dst = base.dir("sfm")
@@ -297,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
                         "max_keypoints": keypoints,
                         "stages": ["aerial_sfm", "train_splat", *stages],
                     },
-                    {**settings, **renderer_settings(r)},
+                    {**settings, "renderer": r},
                 )
                 link_base(job, base)
                 if p == "both":

@@ -87,23 +87,12 @@ def main() -> None:
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--keypoints", type=int, default=1024, help="ALIKED keypoints for matchability (0: skip)")
     ap.add_argument("--out", type=Path, help="write the per-view figures here (JSON)")
-    ap.add_argument(
-        "--source",
-        action="store_true",
-        help="also render each model with its colour from the full-resolution aerial images through its "
-        "depth (services.source_colour; row LABEL+source)",
-    )
     args = ap.parse_args()
 
     models = {}
     for item in args.splat:
         label, _, path = item.partition("=")
         models[label] = SplatRenderer(path, args.backend, 0.5)
-        if args.source:
-            from services.source_colour import SourceImages
-
-            sources = SourceImages(args.sparse, args.scene / "images")
-            models[f"{label}+source"] = SplatRenderer(path, args.backend, 0.5, sources)
     views = json.loads(args.views.read_text())["views"]
     if args.limit and len(views) > args.limit:
         views = [views[i] for i in np.linspace(0, len(views) - 1, args.limit).round().astype(int)]

@@ -259,26 +259,14 @@ class Job:
             return views.GroundTruthRenderer(self.settings["scene"], self.dir("sfm") / "sparse")
         if self.settings["renderer"] != "splat":
             raise ValueError(f"unknown renderer {self.settings['renderer']!r} (splat, gt)")
-        sources = None
-        if self.views_conf()["colour"] == "source":
-            from services.source_colour import SourceImages
-
-            sources = SourceImages(self.dir("sfm") / "sparse", self.image_dir, self.views_conf()["source"])
         return views.SplatRenderer(
-            self.dir("splat"), self.settings["splat_backend"], self.views_conf()["min_alpha"], sources
+            self.dir("splat"), self.settings["splat_backend"], self.settings["views"].get("min_alpha", 0.5)
         )
-
-    def views_conf(self) -> dict:
-        from services import views
-
-        return _merge(views.confs["default"], self.settings["views"])
 
     def renderer_inputs(self) -> list[Path]:
         if self.settings["renderer"] == "gt":
             return [Path(self.settings["scene"]) / "gt" / "scene.json"]
-        sources = self.views_conf()["colour"] == "source"  # the aerial model and images colour the views
-        extra = [self.dir("sfm") / "sparse", _images(self, "aerial")] if sources else []
-        return [self.dir("splat") / "point_cloud.ply", *extra]
+        return [self.dir("splat") / "point_cloud.ply"]
 
 
 # -- fingerprints and markers --------------------------------------------------------------------

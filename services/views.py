@@ -35,10 +35,6 @@ confs: dict[str, dict[str, Any]] = {
     "default": {
         "min_alpha": 0.5,  # 3DGS: pixels less opaque than this get no depth
         "max_depth_m": 2000.0,
-        # "source": colour from the full-resolution aerial images through the 3DGS depth
-        # (services.source_colour; its conf under "source"), "splat": the 3DGS's own colour
-        "colour": "splat",
-        "source": {},
     },
 }
 
@@ -57,43 +53,24 @@ class Renderer(Protocol):
 
 # -- 3DGS --------------------------------------------------------------------------------------
 class SplatRenderer:
-    """The 3DGS model of services.splat (a training folder, checkpoint or .ply).
-
-    With `sources` (services.source_colour.SourceImages of the aerial model) the views take their colour
-    from the full-resolution aerial images through the 3DGS's depth, and the 3DGS's own colour only where
-    no aerial image sees the surface (name "splat+source"); depth is the 3DGS's either way."""
+    """The 3DGS model of services.splat (a training folder, checkpoint or .ply)."""
 
     name = "splat"
 
-    def __init__(
-        self, model_path: str | Path, backend: str = "auto", min_alpha: float = 0.5, sources: Any = None
-    ):
+    def __init__(self, model_path: str | Path, backend: str = "auto", min_alpha: float = 0.5):
         from services.splat import load_model
 
         self.model_path = Path(model_path)
         self.model = load_model(self.model_path)
         self.backend = backend
         self.min_alpha = float(min_alpha)
-        self.sources = sources
-        if sources is not None:
-            self.name = "splat+source"
-        self.last_stats: dict = {}
 
-    def render_splat(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
-        """The 3DGS's own colour and depth."""
+    def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         from services.splat import render
 
         out = render(self.model, camera, pose, backend=self.backend)
         rgb = np.clip(np.rint(out["color"] * 255.0), 0, 255).astype(np.uint8)
         depth = np.where(out["alpha"] >= self.min_alpha, out["depth"], 0.0).astype(np.float32)
-        return rgb, depth
-
-    def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
-        rgb, depth = self.render_splat(camera, pose)
-        if self.sources is not None:
-            rgb, depth, self.last_stats = self.sources.colour(
-                camera, pose, depth, rgb, lambda c, p: self.render_splat(c, p)[1]
-            )
         return rgb, depth
 
 
@@ -222,9 +199,7 @@ def make_renderer(kind: str, **kwargs: Any) -> Renderer:
 
 
 def depth_fn(renderer: Renderer) -> Callable[[Camera, Pose], np.ndarray]:
-    """The renderer as a depth probe for services.viewpoints (no colour: the 3DGS's depth alone)."""
-    if isinstance(renderer, SplatRenderer):
-        return lambda camera, pose: renderer.render_splat(camera, pose)[1]
+    """The renderer as a depth probe for services.viewpoints."""
     return lambda camera, pose: renderer.render(camera, pose)[1]
 
 
@@ -297,7 +272,6 @@ def main(
             v["render"] = {
                 "seconds": round(time.perf_counter() - t1, 3),
                 "valid_depth": float((depth > 0).mean()),
-                **getattr(renderer, "last_stats", {}),
             }
             if progress is not None:
                 progress((i + 1) / max(n, 1), f"rendered {name}")
