@@ -481,7 +481,6 @@ async function drawPair(canvas, jobId, pid, pair, by = "verification") {
     ctx.beginPath(); ctx.moveTo(ax * ka, ay * ka); ctx.lineTo(A.width * k + gx * kg, gy * kg); ctx.stroke();
   });
   canvas.dataset.green = m.aerial_xy.filter((_, i) => lineColour(m, i, by) === "#22c55e").length;
-  canvas.dataset.red = m.aerial_xy.filter((_, i) => lineColour(m, i, by) === "#ef4444").length;
   return m;
 }
 async function groundPage(jobId, file) {
