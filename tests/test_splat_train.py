@@ -562,6 +562,21 @@ def test_sparse_depth_loss_is_zero_at_the_targets_and_pulls_towards_them():
     assert float(loss.detach()) > 0 and float(far.grad[1, 1]) > 0  # descending the gradient brings it nearer
 
 
+def test_sparse_depth_leaves_out_a_degenerate_point_at_the_camera():
+    """A point at the camera's centre (z ~ 1e-8, as a degenerate SfM point was) is no depth target: its
+    disparity would outweigh every other term of the loss."""
+    from services.splat.loss import sparse_depth_loss
+    from services.splat.train import sparse_depth
+
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    m = np.c_[np.eye(3), np.zeros(3)]
+    pts = np.array([[0.0, 0.0, 70.0], [5.0, 2.0, 80.0], [1e-7, 1e-7, 1e-8], [-3.0, 1.0, 75.0]])
+    px, z = sparse_depth(pts, K, m, 100, 80)
+    assert np.allclose(sorted(z.tolist()), [70.0, 75.0, 80.0])
+    depth = torch.full((80, 100), 75.0)
+    assert float(sparse_depth_loss(depth, px, z, 1.0)) < 1e-3  # ~0.0002, not ~1e8
+
+
 def _depth_views(model, pts):
     from services.splat.train import sparse_depth
 

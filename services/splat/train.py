@@ -324,13 +324,20 @@ def load_scene(
     return SceneData.from_views(views, points, colors, test_every)
 
 
+MIN_DEPTH_FRACTION = 1e-3  # sparse-depth targets nearer than this fraction of a view's median are dropped
+
+
 def sparse_depth(
     xyz: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, width: int, height: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixels (M, 2) and z-depths (M,) of the points `xyz` (N, 3) in front of the camera and inside the
-    image (float32 tensors)."""
+    image (float32 tensors). Points nearer than MIN_DEPTH_FRACTION of the median depth are left out: a
+    degenerate SfM point at a camera's centre (seen in `midview demo`'s model: z = 1e-8 m where the median
+    was 75 m) would make the loss in disparity 1e8 and pull the depth there towards zero."""
     uv, z = Pose(cam_from_world[:, :3], cam_from_world[:, 3]).project(np.asarray(K, float), xyz)
     keep = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+    if keep.any():
+        keep &= z > MIN_DEPTH_FRACTION * np.median(z[keep])
     return torch.tensor(uv[keep], dtype=torch.float32), torch.tensor(z[keep], dtype=torch.float32)
 
 
