@@ -579,20 +579,7 @@ def print_table(rows: list[dict], sfm_evals: dict[str, dict], console) -> None:
     for col in cols:
         table.add_column(col, justify="left" if col == "method" else "right")
     for s in rows:
-        ev = sfm_evals.get(s["method"])
-        table.add_row(
-            s["method"],
-            f"{s['mean_nim']:.1f}",
-            f"{s['mean_ncm']:.1f}",
-            f"{s['mean_gt_correct']:.1f}",
-            f"{s['mean_precision']:.3f}",
-            f"{s['pooled_precision']:.3f}",
-            f"{s['nmp']}/{s['num_pairs']}",
-            nri_ground(ev),
-            str(ground_within(ev)) if ev else "-",
-            ground_error(ev),
-            ground_error(ev, "aerial_aligned_error"),
-        )
+        table.add_row(*row_cells(s, sfm_evals.get(s["method"])))
     console.print(table)
     console.print(
         "NRI ground: ground images registered by the combined reconstruction with each method's matches "
@@ -640,6 +627,24 @@ def draw_pair(
     return out_path
 
 
+def row_cells(s: dict, ev: dict | None) -> list[str]:
+    """A method's cells of the demo's table: its match summary (evaluate_matches) and the combined
+    reconstruction's ground figures (evaluate_sfm, or None)."""
+    return [
+        s["method"],
+        f"{s['mean_nim']:.1f}",
+        f"{s['mean_ncm']:.1f}",
+        f"{s['mean_gt_correct']:.1f}",
+        f"{s['mean_precision']:.3f}",
+        f"{s['pooled_precision']:.3f}",
+        f"{s['nmp']}/{s['num_pairs']}",
+        nri_ground(ev),
+        str(ground_within(ev)) if ev else "-",
+        ground_error(ev),
+        ground_error(ev, "aerial_aligned_error"),
+    ]
+
+
 def write_report_html(
     out: Path, scene: Path, files: dict, rows: list[dict], sfm_evals: dict[str, dict], timings: dict, job
 ) -> Path:
@@ -677,24 +682,7 @@ def write_report_html(
         "ground abs error med / max (m)",
         "aerial-aligned (m)",
     ]
-    table = []
-    for s in rows:
-        ev = sfm_evals.get(s["method"])
-        table.append(
-            [
-                s["method"],
-                f"{s['mean_nim']:.1f}",
-                f"{s['mean_ncm']:.1f}",
-                f"{s['mean_gt_correct']:.1f}",
-                f"{s['mean_precision']:.3f}",
-                f"{s['pooled_precision']:.3f}",
-                f"{s['nmp']}/{s['num_pairs']}",
-                nri_ground(ev),
-                str(ground_within(ev)) if ev else "-",
-                ground_error(ev),
-                ground_error(ev, "aerial_aligned_error"),
-            ]
-        )
+    table = [row_cells(s, sfm_evals.get(s["method"])) for s in rows]
     notes = [
         f"Synthetic survey {scene}: co-visible aerial-ground pairs of the ground truth, means per pair. "
         "GT-correct: verified matches within 3 px in both images through the true depth; NMP: pairs with "
