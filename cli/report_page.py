@@ -151,15 +151,11 @@ class _Truth:
         self.depths.close()
 
 
-def snapshot(job: pipeline.Job, scene: Path | None = None, evaluation: dict | None = None) -> dict:
-    """The recorded API answers of one finished job: {"start", "json": {path: answer}, "blobs": {path:
-    data URL}, "files": {path: relative file link}, "evaluation"}."""
-    jsons: dict[str, Any] = {}
-    blobs: dict[str, str] = {}
+def _job_answers(job: pipeline.Job) -> dict[str, Any]:
+    """The project's and the job's answers: /projects, /projects/P, its jobs and POS, /jobs/J."""
     created = _now(job.root / pipeline.JOB_FILE)
     runs, metrics, timings = _stage_runs(job)
     outcome = job_outcome(metrics)
-    metrics = {**metrics, "outcome": outcome}
     n_images = {s: sum(1 for _ in (job.image_dir / s).iterdir()) for s in ("aerial", "ground")}
     pos = _pos_rows(job)
     project = ProjectOut(
@@ -172,17 +168,18 @@ def snapshot(job: pipeline.Job, scene: Path | None = None, evaluation: dict | No
         origin_h=None,
         created_at=created,
     )
+    total = max(len(job.options.stages), 1)
     done = len(runs) == len(job.options.stages)
     job_out = JobOut(
         id=JOB_ID,
         project_id=PROJECT_ID,
         status="succeeded" if done else "failed",
         current_stage=None,
-        progress=1.0 if done else len(runs) / max(len(job.options.stages), 1),
-        progress_percent=100.0 if done else round(100.0 * len(runs) / max(len(job.options.stages), 1), 1),
+        progress=1.0 if done else len(runs) / total,
+        progress_percent=100.0 if done else round(100.0 * len(runs) / total, 1),
         options=job.options.model_dump(mode="json"),
         timings=timings,
-        metrics=metrics,
+        metrics={**metrics, "outcome": outcome},
         outcome=outcome,
         error=None if done else "the demo's job did not finish every stage",
         attempt=1,
@@ -192,77 +189,87 @@ def snapshot(job: pipeline.Job, scene: Path | None = None, evaluation: dict | No
         started_at=created,
         finished_at=max((r.finished_at for r in runs), default=created),
     )
-    jsons["/projects"] = [project.model_dump(mode="json")]
-    jsons[f"/projects/{PROJECT_ID}"] = ProjectDetail(
-        **project.model_dump(), images=n_images, pos_records=len(pos), jobs=1
-    ).model_dump(mode="json")
-    jsons[f"/projects/{PROJECT_ID}/jobs"] = [job_out.model_dump(mode="json")]
-    jsons[f"/projects/{PROJECT_ID}/pos"] = pos
-    jsons[f"/jobs/{JOB_ID}"] = JobDetail(**job_out.model_dump(), stages=runs).model_dump(mode="json")
-    # artifacts: small ones embedded, views and images as JPEG, the rest linked as files beside the report
-    files: dict[str, str] = {}
+    return {
+        "/projects": [project.model_dump(mode="json")],
+        f"/projects/{PROJECT_ID}": ProjectDetail(
+            **project.model_dump(), images=n_images, pos_records=len(pos), jobs=1
+        ).model_dump(mode="json"),
+        f"/projects/{PROJECT_ID}/jobs": [job_out.model_dump(mode="json")],
+        f"/projects/{PROJECT_ID}/pos": pos,
+        f"/jobs/{JOB_ID}": JobDetail(**job_out.model_dump(), stages=runs).model_dump(mode="json"),
+    }
+
+
+def _artifacts(job: pipeline.Job, blobs: dict[str, str]) -> list[dict]:
+    """The job's artifacts (ArtifactOut); the views (as JPEG) and the small layers go into `blobs`,
+    the others are linked as files of the job folder beside the report."""
     arts = []
     for stage in job.options.stages:
         for rel, kind, path in artifact_files(job.root, stage):
             key = f"/report/artifacts/{rel}"
             size = path.stat().st_size
+            url = None
             if path.suffix == ".png" and rel.startswith("views/"):
                 url = jpeg_data_url(path)
-                if url:
-                    blobs[key] = url
             elif path.suffix in JSON_KINDS and size <= EMBED_MAX_BYTES:
-                blobs[key] = _data_url(path.read_bytes(), content_type(path))
-            if key not in blobs:
-                key = f"{job.root.name}/{rel}"
-                files[key] = key
-            arts.append(
-                ArtifactOut(
-                    id=f"art-{len(arts)}",
-                    job_id=JOB_ID,
-                    kind=kind,
-                    name=rel,
-                    size_bytes=size,
-                    sha256=None,
-                    content_type=content_type(path),
-                    created_at=_now(path),
-                    download_url=key,
-                ).model_dump(mode="json")
+                url = _data_url(path.read_bytes(), content_type(path))
+            if url:
+                blobs[key] = url
+            art = ArtifactOut(
+                id=f"art-{len(arts)}",
+                job_id=JOB_ID,
+                kind=kind,
+                name=rel,
+                size_bytes=size,
+                sha256=None,
+                content_type=content_type(path),
+                created_at=_now(path),
+                download_url=key if url else f"{job.root.name}/{rel}",
             )
-    jsons[f"/jobs/{JOB_ID}/artifacts"] = arts
-    # images of every set, as the ground pages and the match drawings load them
-    for s in ("aerial", "ground"):
+            arts.append(art.model_dump(mode="json"))
+    return arts
+
+
+def _pair_answers(job: pipeline.Job, scene: Path | None) -> dict[str, Any]:
+    """/jobs/J/pairs and each pair's matches, with their truth on a synthetic survey (`scene`)."""
+    matches = job.dir("transfer") / "matches.h5"
+    if not matches.is_file():
+        return {}
+    method, pairs = list_pairs(matches)
+    out = {
+        f"/jobs/{JOB_ID}/pairs": PairList(
+            artifact="transfer/matches.h5", method=method, total=len(pairs), pairs=pairs
+        ).model_dump(mode="json")
+    }
+    truth = _Truth(scene) if scene is not None and (scene / "gt" / "depth.h5").is_file() else None
+    try:
+        for p in pairs:
+            d = read_pair(matches, p["aerial"], p["ground"])
+            answer = PairMatchesOut(artifact="transfer/matches.h5", **d).model_dump(mode="json")
+            if truth is not None:
+                xy_a, xy_g = np.asarray(d["aerial_xy"]), np.asarray(d["ground_xy"])
+                answer["truth"] = truth(p["aerial"], p["ground"], xy_a, xy_g)
+            a, g = p["aerial"].split("/", 1)[1], p["ground"].split("/", 1)[1]
+            out[f"/jobs/{JOB_ID}/pairs/aerial/{a}/ground/{g}"] = answer
+    finally:
+        if truth is not None:
+            truth.close()
+    return out
+
+
+def snapshot(job: pipeline.Job, scene: Path | None = None, evaluation: dict | None = None) -> dict:
+    """The recorded API answers of one finished job: {"start": the page's route, "json": {path:
+    answer}, "blobs": {path: data URL}, "evaluation"}."""
+    blobs: dict[str, str] = {}
+    jsons = _job_answers(job)
+    jsons[f"/jobs/{JOB_ID}/artifacts"] = _artifacts(job, blobs)
+    for s in ("aerial", "ground"):  # the images, as the ground pages and the match drawings load them
         for p in sorted((job.image_dir / s).iterdir()):
             url = jpeg_data_url(p)
             if url:
                 blobs[f"/projects/{PROJECT_ID}/images/{s}/{p.name}/download"] = url
-    # the pairs of the transferred matches, each with its matches (and the truth of a synthetic survey)
-    matches = job.dir("transfer") / "matches.h5"
-    truth = _Truth(scene) if scene is not None and (scene / "gt" / "depth.h5").is_file() else None
-    try:
-        if matches.is_file():
-            method, pairs = list_pairs(matches)
-            jsons[f"/jobs/{JOB_ID}/pairs"] = PairList(
-                artifact="transfer/matches.h5", method=method, total=len(pairs), pairs=pairs
-            ).model_dump(mode="json")
-            for p in pairs:
-                d = read_pair(matches, p["aerial"], p["ground"])
-                out = PairMatchesOut(artifact="transfer/matches.h5", **d).model_dump(mode="json")
-                if truth is not None:
-                    out["truth"] = truth(
-                        p["aerial"], p["ground"], np.asarray(d["aerial_xy"]), np.asarray(d["ground_xy"])
-                    )
-                a, g = p["aerial"].split("/", 1)[1], p["ground"].split("/", 1)[1]
-                jsons[f"/jobs/{JOB_ID}/pairs/aerial/{a}/ground/{g}"] = out
-    finally:
-        if truth is not None:
-            truth.close()
-    return {
-        "start": f"#/jobs/{JOB_ID}",
-        "json": jsons,
-        "blobs": blobs,
-        "files": files,
-        "evaluation": evaluation,
-    }
+    jsons.update(_pair_answers(job, scene))
+    return {"start": f"#/jobs/{JOB_ID}", "json": jsons, "blobs": blobs, "evaluation": evaluation}
 
 
 # -- the page ------------------------------------------------------------------------------------
