@@ -58,11 +58,18 @@ class Settings(BaseSettings):
     task_max_retries: int = Field(
         5, ge=0, description="Retries of a task after a transient error (storage, database, broker)"
     )
+    heartbeat_every_s: float = Field(
+        10.0, gt=0, description="How often a running task refreshes its heartbeat (Redis key, stage run)"
+    )
+    reconcile_every_s: float = Field(
+        15.0, gt=0, description="How often celery beat sends the reconcile task (stalled or lost stages)"
+    )
     heartbeat_timeout_s: float = Field(
-        45.0,
+        30.0,
         gt=0,
-        description="A running stage whose heartbeat is older than this and whose Celery node does not "
-        "answer a ping is re-dispatched (its node died)",
+        description="A running stage whose heartbeat is older than this is re-dispatched when its Celery "
+        "node does not answer a ping (the node died) or when the broker holds no task or message of its job "
+        "(the broker lost them)",
     )
     heartbeat_dead_s: float = Field(
         1800.0,

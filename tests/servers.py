@@ -251,6 +251,53 @@ def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         _stop(proc)
 
 
+class RedisServer:
+    """A private redis-server on a fixed port that a test can crash (SIGKILL) and start again; it keeps
+    nothing on disk, so a restart loses every key, as a crashed Redis without persistence does."""
+
+    def __init__(self, folder: Path, port: int | None = None):
+        exe = shutil.which("redis-server")
+        if exe is None:
+            pytest.skip("redis-server is not installed")
+        self.exe, self.folder = exe, folder
+        self.port = port or free_ports(1)[0]
+        self.url = f"redis://{REDIS_HOST}:{self.port}/0"
+        self.proc: subprocess.Popen | None = None
+        self.starts = 0
+
+    def start(self, timeout: float = 10.0) -> None:
+        import redis
+
+        self.starts += 1
+        log = self.folder / f"redis-{self.starts}.log"
+        args = [self.exe, "--port", str(self.port), "--bind", REDIS_HOST, "--save", "", "--appendonly", "no",
+                "--daemonize", "no", "--dir", str(self.folder)]  # fmt: skip
+        self.proc = _spawn(args, log)
+        r = redis.Redis(host=REDIS_HOST, port=self.port, socket_connect_timeout=1, retry=None)
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                try:
+                    r.ping()
+                    return
+                except redis.RedisError:
+                    if self.proc.poll() is not None or time.monotonic() > deadline:
+                        raise RuntimeError(f"redis-server did not start:\n{_tail(log)}") from None
+                    time.sleep(0.05)
+        finally:
+            r.close()
+
+    def crash(self) -> None:
+        """SIGKILL: no shutdown, every key lost."""
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(5)
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            _stop(self.proc)
+
+
 # S3 (SeaweedFS)
 @dataclass(frozen=True)
 class S3Server:
@@ -391,6 +438,7 @@ def start_uvicorn(
     app: str = "api.main:create_app",
     timeout: float = 60.0,
     log_level: str = "warning",
+    workers: int = 1,
 ) -> UvicornServer:
     """uvicorn serving the app factory `app` on a free port of 127.0.0.1 in its own process, configured
     by env (its MIDVIEW_* variables); returns once GET /healthz answers 200. Another try on a new port
@@ -401,7 +449,7 @@ def start_uvicorn(
     for _ in range(3):
         (port,) = free_ports(1)
         args = [sys.executable, "-m", "uvicorn", "--factory", app, "--host", "127.0.0.1", "--port", str(port),
-                "--log-level", log_level, "--no-access-log"]  # fmt: skip
+                "--log-level", log_level, "--no-access-log", "--workers", str(workers)]  # fmt: skip
         proc = _spawn(args, log, cwd=cwd, env=env)
         base = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + timeout

@@ -30,9 +30,9 @@ QUEUES = ("gpu", "cpu", "reduce")
 DEFAULT_QUEUE = "reduce"
 # a message not acknowledged within this time is delivered again (Redis transport): longer than any task
 VISIBILITY_TIMEOUT_S = 6 * 3600
-# with heartbeats every 20 s (workers/tasks.py) and heartbeat_timeout_s 45 s, a stage whose node died or
-# whose message the broker lost is dispatched again within about a minute
-RECONCILE_EVERY_S = 15.0
+# with heartbeats every 10 s (settings.heartbeat_every_s, workers/tasks.py), heartbeat_timeout_s 30 s and
+# reconcile every 15 s (settings.reconcile_every_s), a stage whose node died or whose message the broker
+# lost is dispatched again within 30 + 15 s (and a ping's 2 s) of its last heartbeat
 WEBHOOKS_EVERY_S = 15.0
 
 # task names (stable: messages in the broker refer to them)
@@ -119,7 +119,11 @@ def celery_config(settings: Settings) -> dict[str, Any]:
             Path(settings.work_dir or Path(settings.data_dir) / "work") / "celerybeat-schedule"
         ),
         "beat_schedule": {
-            "reconcile": {"task": RECONCILE, "schedule": RECONCILE_EVERY_S, "options": {"queue": "reduce"}},
+            "reconcile": {
+                "task": RECONCILE,
+                "schedule": settings.reconcile_every_s,
+                "options": {"queue": "reduce", "expires": settings.reconcile_every_s * 2},
+            },
             "deliver_webhooks": {
                 "task": DELIVER_WEBHOOKS,
                 "schedule": WEBHOOKS_EVERY_S,

@@ -14,10 +14,13 @@ outputs are up to date is skipped), so dispatching a job twice costs time, never
 A worker node that dies as a whole (machine lost, container killed) leaves the messages it had reserved
 in the broker's `unacked` hash until the visibility timeout (hours), so RedisLiveness still counts its
 jobs as live. `nodes` (NodeCheck, the Celery deployment) catches that early: a running stage run whose
-heartbeat (refreshed every 20 s by the task working on it, workers/tasks.py) is older than
+heartbeat (refreshed every heartbeat_every_s by the task working on it, workers/tasks.py) is older than
 heartbeat_timeout_s, and whose Celery node does not answer a ping, or whose heartbeat is older than
 heartbeat_dead_s whatever the node says, is closed as failed ("abandoned") and its job dispatched again
 from that stage, unless a task of the job runs or a message of it waits in a queue (`active`).
+A broker that restarted (Redis crashed; its memory lost) loses the messages and the task keys; the
+worker, reconnected, answers pings, and its task was cancelled on the connection loss: a stale heartbeat
+whose job the broker holds nothing of (`known`: running, queued or reserved) is given up the same way.
 
 `reconcile` returns the actions it took (and logs them), so that it can be tested on database rows with
 a recording dispatcher.
@@ -85,6 +88,8 @@ class NodeCheck:
     heartbeat_timeout_s: float = 120.0
     heartbeat_dead_s: float = 1800.0
     active: Container[str] = frozenset()  # jobs with a running task or a message waiting in a queue
+    # jobs the broker holds anything of (running, queued or reserved); None: the broker was not read
+    known: Container[str] | None = None
 
 
 def celery_ping(app: Any, timeout_s: float = 2.0) -> Callable[[list[str]], set[str]]:
@@ -128,6 +133,10 @@ def lost_runs(session: Session, now: datetime, nodes: NodeCheck) -> dict[str, tu
             why = f"stage {run.stage}: no heartbeat for {age:.0f} s"
         elif run.node and answering is not None and run.node not in answering:
             why = f"stage {run.stage}: no heartbeat for {age:.0f} s and its node {run.node} does not answer"
+        elif nodes.known is not None and run.job_id not in nodes.known:
+            why = (
+                f"stage {run.stage}: no heartbeat for {age:.0f} s and no task or message of it in the broker"
+            )
         else:
             continue
         out.setdefault(run.job_id, (run, why))

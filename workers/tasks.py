@@ -15,15 +15,17 @@ runs, nothing is recorded as failed.
 
 While a task of a job runs, its id is in the Redis set `midview:job:{job}:tasks` (the dispatcher revokes
 them on cancel) and `midview:task:{id}:alive` holds {job, task, args, pid, hostname}, refreshed every
-HEARTBEAT_S with a TTL of ALIVE_TTL_S: the reconciler's proof that the job is being worked on. Every
-HEARTBEAT_S the task also refreshes `heartbeat_at` of its stage run in the database; the run records the
-task's Celery node, which the reconciler pings when that heartbeat gets old (a worker node that died).
+settings.heartbeat_every_s with a TTL of alive_ttl_s: the reconciler's proof that the job is being
+worked on. Every heartbeat_every_s the task also refreshes `heartbeat_at` of its stage run in the
+database; the run records the task's Celery node, which the reconciler pings when that heartbeat gets
+old (a worker node that died).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import threading
 import time
@@ -55,14 +57,19 @@ from workers.celery_app import (
 
 log = logging.getLogger("midview.workers.tasks")
 
-HEARTBEAT_S = 20.0
-ALIVE_TTL_S = 90
 
 __all__ = ["ALIVE_PATTERN", "alive_key", "tasks_key"]
 
 # -- Redis ---------------------------------------------------------------------------------------
 _redis: Any = None
 _redis_pid: int | None = None
+
+
+def alive_ttl_s(heartbeat_every_s: float) -> int:
+    """TTL of a task's heartbeat key: three beats (two missed ones, a slow Redis, do not make it vanish);
+    no longer than the reconciler's heartbeat timeout at the defaults, so a dead task's key is gone by
+    the time its stage run's heartbeat is stale."""
+    return max(3, math.ceil(3 * heartbeat_every_s))
 
 
 def redis_client() -> Any:
@@ -114,12 +121,14 @@ def tracked(task: Any, job_id: str, stage: str | None = None) -> Iterator[None]:
     )
     in_redis = r is not None and bool(tid)
     stop = threading.Event()
+    every_s = get_settings().heartbeat_every_s
+    ttl_s = alive_ttl_s(every_s)
 
     def heartbeat() -> None:
-        while not stop.wait(HEARTBEAT_S):
+        while not stop.wait(every_s):
             if in_redis:
                 try:
-                    r.set(alive_key(tid), info, ex=ALIVE_TTL_S)
+                    r.set(alive_key(tid), info, ex=ttl_s)
                 except redis.RedisError as e:
                     log.warning("heartbeat of task %s: %s", tid, e)
             _db_heartbeat(job_id, stage)
@@ -128,7 +137,7 @@ def tracked(task: Any, job_id: str, stage: str | None = None) -> Iterator[None]:
         try:
             pipe = r.pipeline()
             pipe.sadd(tasks_key(job_id), tid).expire(tasks_key(job_id), TASKS_TTL_S)
-            pipe.set(alive_key(tid), info, ex=ALIVE_TTL_S)
+            pipe.set(alive_key(tid), info, ex=ttl_s)
             pipe.execute()
         except redis.RedisError as e:
             log.warning("could not register task %s of job %s: %s", tid, job_id, e)
@@ -254,6 +263,7 @@ def reconcile() -> list[dict]:
         heartbeat_timeout_s=settings.heartbeat_timeout_s,
         heartbeat_dead_s=settings.heartbeat_dead_s,
         active=parts.running | parts.queued if parts is not None else frozenset(),
+        known=parts.all() if parts is not None else None,
     )
     with session_scope(get_engine(settings.database_url)) as session:
         actions = run_reconcile(
