@@ -34,6 +34,26 @@ class ApiSettings(Settings):
         30.0, gt=0, description="A request whose body stops arriving for this long is answered 408"
     )
     max_validation_errors: int = Field(20, ge=1, description="Validation errors listed in a 422 at most")
+    db_pool_size: int = Field(
+        10,
+        ge=1,
+        le=200,
+        description="Database connections each API process keeps open (as many more for bursts); status "
+        "reads and key lookups run at most this many at once, so they never wait on a new connection",
+    )
+    status_cache_s: float = Field(
+        0.5,
+        ge=0,
+        le=10,
+        description="GET /jobs/{id} answers are reused this long by each API process (what workers wrote "
+        "shows within this time; cancel and rerun here at once); 0: read the database every time",
+    )
+    auth_cache_s: float = Field(
+        5.0,
+        ge=0,
+        description="API keys that authenticated are remembered this long by each API process (a key "
+        "revoked elsewhere stops working within this time); 0: ask the database on every request",
+    )
     rate_limit_per_minute: int = Field(
         1200, ge=0, description="Requests a minute per API key (429 with Retry-After past it); 0: no limit"
     )

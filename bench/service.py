@@ -191,7 +191,9 @@ class Stack:
             "DISPATCHER": "celery",
             "NUM_THREADS": 1,
             "LOG_LEVEL": "WARNING",
-            "RATE_LIMIT_PER_MINUTE": 0,  # the load test is one key's flood: measure latency, not 429s
+            "RATE_LIMIT_PER_MINUTE": int(
+                os.environ.get("BENCH_RATE", 10**9)
+            ),  # one key floods: the limiter counts (in Redis) but never says 429
         }
         if s3 is not None:
             values.update(
@@ -209,8 +211,8 @@ class Stack:
         env["OMP_NUM_THREADS"] = "1"
         self.env = env
 
-    def start_api(self) -> str:
-        server = servers.start_uvicorn(self.env, self.tmp / "uvicorn.log", cwd=ROOT)
+    def start_api(self, workers: int = 1) -> str:
+        server = servers.start_uvicorn(self.env, self.tmp / "uvicorn.log", cwd=ROOT, workers=workers)
         self.procs.append(server.proc)
         return server.base_url
 
@@ -276,6 +278,68 @@ async def hammer(base: str, path: str, headers: dict[str, str], clients: int, n:
     latencies.sort()
     q = statistics.quantiles(latencies, n=100, method="inclusive")
     return {"p50": q[49] * 1e3, "p99": q[98] * 1e3, "rps": len(latencies) / wall, "errors": errors}
+
+
+WRK_REPORT = """
+done = function(summary, latency, requests)
+  local n = summary.requests
+  local errors = summary.errors.status + summary.errors.connect + summary.errors.read
+    + summary.errors.write + summary.errors.timeout
+  io.write(string.format('WRK {"p50": %f, "p90": %f, "p99": %f, "n": %d, "seconds": %f, "errors": %d}\\n',
+    latency:percentile(50) / 1000, latency:percentile(90) / 1000, latency:percentile(99) / 1000,
+    n, summary.duration / 1e6, errors))
+end
+"""
+
+
+def hammer_wrk(
+    base: str,
+    path: str,
+    headers: dict[str, str],
+    clients: int,
+    seconds: float,
+    suffixes: list[str] | None = None,
+) -> dict[str, float]:
+    """The same figures as hammer() from wrk (a C load generator: one thread, `clients` connections kept
+    alive, each sending its next request when the last one answered), which leaves the API the CPU
+    that an asyncio client in Python would take from it on a small machine. With suffixes, request
+    path + suffixes[i] in turn (each connection its own, with as many suffixes as clients)."""
+    import subprocess
+
+    script = Path(tempfile.mkdtemp()) / "report.lua"
+    paths = ""
+    if suffixes:
+        listed = ", ".join(f'"{path}{x}"' for x in suffixes)
+        paths = f"""
+local paths = {{{listed}}}
+local counter = 0
+setup = function(thread) end
+init = function(args) end
+request = function()
+  counter = counter + 1
+  return wrk.format(nil, paths[(counter % #paths) + 1])
+end
+"""
+    script.write_text(paths + WRK_REPORT)
+    args = ["wrk", "-t", "1", "-c", str(clients), "--timeout", "30s", "-s", str(script)]
+    for k, v in headers.items():
+        args += ["-H", f"{k}: {v}"]
+    subprocess.run([*args, "-d", "2s", base + path], capture_output=True, check=True)  # warm up
+    run = subprocess.run(
+        [*args, "-d", f"{seconds:.0f}s", base + path], capture_output=True, text=True, check=True
+    )
+    out = run.stdout
+    line = next((ln for ln in out.splitlines() if ln.startswith("WRK ")), None)
+    if line is None:
+        raise RuntimeError(f"wrk printed no report:\n{out[-2000:]}")
+    m = json.loads(line[4:])
+    return {
+        "p50": m["p50"],
+        "p90": m["p90"],
+        "p99": m["p99"],
+        "rps": m["n"] / m["seconds"],
+        "errors": m["errors"],
+    }
 
 
 # 2. uploads
@@ -390,6 +454,40 @@ def bench_workers(stack: Stack, base: str, headers: dict[str, str]) -> dict[str,
     return out
 
 
+def upload_section(console, stack, base, headers, project_id, args, rows, figures) -> None:
+    """Uploads through the API (one POST; the client's presigned parts) against boto3 put_object."""
+    storage = "SeaweedFS S3" if stack.s3 else "local"
+    with console.status(f"uploads of {args.upload_mb} MB"):
+        size_mb, api_t, client_t, direct_t = bench_uploads(
+            stack, base, headers, project_id, args.upload_mb, args.uploads
+        )
+    api_mbs = size_mb * len(api_t) / sum(api_t)
+    client_mbs = size_mb * len(client_t) / sum(client_t)
+    rows.append((
+        "upload: one multipart/form-data POST to the API",
+        f"{api_mbs:.1f} MB/s",
+        f"{len(api_t)} x {size_mb:.1f} MB JPEG, {storage}, median {statistics.median(api_t):.2f} s",
+    ))  # fmt: skip
+    rows.append((
+        "upload: the client (parts in parallel to presigned URLs, then complete)",
+        f"{client_mbs:.1f} MB/s",
+        f"median {statistics.median(client_t):.2f} s, the API's sha256 and full decode included",
+    ))  # fmt: skip
+    figures["upload_mb_s_api_post"] = api_mbs
+    figures["upload_mb_s_client"] = client_mbs
+    if direct_t:
+        direct_mbs = size_mb * len(direct_t) / sum(direct_t)
+        rows.append(("boto3 put_object direct", f"{direct_mbs:.1f} MB/s", "same bytes, same S3 server"))
+        rows.append(
+            ("client / direct", f"x{client_mbs / direct_mbs:.2f}", "what a user of midview submit gets")
+        )
+        rows.append(("API POST / direct", f"x{api_mbs / direct_mbs:.2f}", ""))
+        figures["upload_ratio_vs_boto3"] = client_mbs / direct_mbs
+        figures["upload_ratio_vs_boto3_api_post"] = api_mbs / direct_mbs
+    else:
+        rows.append(("boto3 put_object direct", "not measured", "no S3 server"))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--clients", type=int, default=50)
@@ -397,6 +495,14 @@ def main() -> None:
     ap.add_argument("--upload-mb", type=float, default=64)
     ap.add_argument("--uploads", type=int, default=4)
     ap.add_argument("--skip-workers", action="store_true")
+    ap.add_argument("--skip-uploads", action="store_true")
+    ap.add_argument("--load", choices=["wrk", "httpx"], help="load generator (default: wrk when installed)")
+    ap.add_argument("--seconds", type=float, default=15, help="duration of each wrk run")
+    ap.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes")
+    ap.add_argument(
+        "--api-env", action="append", default=[], metavar="NAME=VALUE",
+        help="a MIDVIEW_NAME setting of the API, e.g. STATUS_CACHE_S=0 (repeatable)",
+    )  # fmt: skip
     ap.add_argument("--json", type=Path, help="also write the figures here (docs/results/service.json)")
     args = ap.parse_args()
 
@@ -410,7 +516,8 @@ def main() -> None:
     try:
         with console.status("starting PostgreSQL, Redis, SeaweedFS, uvicorn"):
             stack.start()
-            base = stack.start_api()
+            stack.env.update({f"MIDVIEW_{k}": v for k, _, v in (e.partition("=") for e in args.api_env)})
+            base = stack.start_api(args.api_workers)
         from api.bootstrap import create_tenant_with_key
         from shared.db import crud
         from shared.db.session import make_engine, session_scope
@@ -422,14 +529,28 @@ def main() -> None:
             project = crud.create_project(s, tenant_id, "bench")
             job = crud.create_job(s, project.id)
             project_id, job_id = project.id, job.id
+            others = [crud.create_job(s, project.id).id for _ in range(args.clients - 1)]
         engine.dispose()
         headers = {"Authorization": f"Bearer {key}"}
-        storage = "SeaweedFS S3" if stack.s3 else "local"
 
-        with console.status(f"GET latency, {args.clients} clients x {args.requests} requests"):
-            health = asyncio.run(hammer(base, "/healthz", headers, args.clients, args.requests))
-            jobs = asyncio.run(hammer(base, f"/jobs/{job_id}", headers, args.clients, args.requests))
-            one = asyncio.run(hammer(base, f"/jobs/{job_id}", headers, 1, min(args.requests, 500)))
+        load = args.load or ("wrk" if shutil.which("wrk") else "httpx")
+        with console.status(f"GET latency ({load}), {args.clients} clients"):
+            if load == "wrk":
+                health = hammer_wrk(base, "/healthz", headers, args.clients, args.seconds)
+                jobs = hammer_wrk(base, f"/jobs/{job_id}", headers, args.clients, args.seconds)
+                one = hammer_wrk(base, f"/jobs/{job_id}", headers, 1, args.seconds)
+                spread = hammer_wrk(base, "/jobs/", headers, args.clients, args.seconds, [job_id, *others])
+                figures["status_p99_ms_50_clients_50_jobs"] = spread["p99"]
+                rows.append((
+                    "GET /jobs/{id} p50 / p99, each client its own job",
+                    f"{spread['p50']:.1f} / {spread['p99']:.1f} ms",
+                    f"{spread['rps']:.0f} req/s, {args.clients} jobs",
+                ))  # fmt: skip
+            else:
+                health = asyncio.run(hammer(base, "/healthz", headers, args.clients, args.requests))
+                jobs = asyncio.run(hammer(base, f"/jobs/{job_id}", headers, args.clients, args.requests))
+                one = asyncio.run(hammer(base, f"/jobs/{job_id}", headers, 1, min(args.requests, 500)))
+        figures["load_generator"] = load
         rows.append(("GET /jobs/{id} p50 / p99, 1 client", f"{one['p50']:.1f} / {one['p99']:.1f} ms", ""))
         figures["status_p99_ms_50_clients"] = jobs["p99"]
         figures["status_p99_ms_1_client"] = one["p99"]
@@ -444,35 +565,8 @@ def main() -> None:
             f"throughput x{jobs['rps'] / health['rps']:.2f}",
         ))  # fmt: skip
 
-        with console.status(f"uploads of {args.upload_mb} MB"):
-            size_mb, api_t, client_t, direct_t = bench_uploads(
-                stack, base, headers, project_id, args.upload_mb, args.uploads
-            )
-        api_mbs = size_mb * len(api_t) / sum(api_t)
-        client_mbs = size_mb * len(client_t) / sum(client_t)
-        rows.append((
-            "upload: one multipart/form-data POST to the API",
-            f"{api_mbs:.1f} MB/s",
-            f"{len(api_t)} x {size_mb:.1f} MB JPEG, {storage}, median {statistics.median(api_t):.2f} s",
-        ))  # fmt: skip
-        rows.append((
-            "upload: the client (parts in parallel to presigned URLs, then complete)",
-            f"{client_mbs:.1f} MB/s",
-            f"median {statistics.median(client_t):.2f} s, the API's sha256 and full decode included",
-        ))  # fmt: skip
-        figures["upload_mb_s_api_post"] = api_mbs
-        figures["upload_mb_s_client"] = client_mbs
-        if direct_t:
-            direct_mbs = size_mb * len(direct_t) / sum(direct_t)
-            rows.append(("boto3 put_object direct", f"{direct_mbs:.1f} MB/s", "same bytes, same S3 server"))
-            rows.append(
-                ("client / direct", f"x{client_mbs / direct_mbs:.2f}", "what a user of midview submit gets")
-            )
-            rows.append(("API POST / direct", f"x{api_mbs / direct_mbs:.2f}", ""))
-            figures["upload_ratio_vs_boto3"] = client_mbs / direct_mbs
-            figures["upload_ratio_vs_boto3_api_post"] = api_mbs / direct_mbs
-        else:
-            rows.append(("boto3 put_object direct", "not measured", "no S3 server"))
+        if not args.skip_uploads:
+            upload_section(console, stack, base, headers, project_id, args, rows, figures)
 
         if args.skip_workers:
             rows.append(("match_views, 1 / 2 workers", "not measured", "--skip-workers"))
@@ -508,6 +602,7 @@ def main() -> None:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
         doc = {
             "command": "python bench/service.py " + " ".join(sys.argv[1:]),
+            "api_env": args.api_env,
             "commit": commit.strip(),
             "cores": os.cpu_count(),
             "clients": args.clients,

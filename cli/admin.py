@@ -161,7 +161,8 @@ def key_revoke(
     database_url: str = DatabaseOption,
     as_json: bool = JsonOption,
 ) -> None:
-    """Revoke an API key: requests with it get 401 from now on."""
+    """Revoke an API key: requests with it get 401 from now on, at the latest after MIDVIEW_AUTH_CACHE_S
+    (5 s by default: how long each API process remembers a key that authenticated)."""
     from shared.db import crud
 
     with _session(database_url) as s:

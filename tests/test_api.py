@@ -139,11 +139,19 @@ def test_auth_missing_malformed_wrong_and_revoked_keys(api_env) -> None:
         assert r.status_code == 401, what
         assert reason in r.json()["detail"], (what, r.json())
         assert r.headers["www-authenticate"].startswith("Bearer"), what
-    with api_env.session() as s:
+    with api_env.session() as s:  # revoked behind this process's back (midview admin key-revoke)
         key = crud.get_api_key(s, tenant.key, pepper=api_env.settings.api_key_pepper)
         crud.revoke_api_key(s, key.id)
         s.commit()
-    r = c.get("/projects", headers=tenant.headers)
+    cache = api_env.app.state.key_cache  # api.auth.KeyCache: keys that authenticated, for auth_cache_s
+    ttl = api_env.settings.auth_cache_s
+    assert ttl > 0 and c.get("/projects", headers=tenant.headers).status_code == 200  # still cached
+    clock = cache.clock
+    cache.clock = lambda: clock() + ttl + 0.01  # auth_cache_s later
+    try:
+        r = c.get("/projects", headers=tenant.headers)
+    finally:
+        cache.clock = clock
     assert r.status_code == 401 and r.json()["detail"] == "API key revoked"
     assert 'error="invalid_token"' in r.headers["www-authenticate"]
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Response, status
+from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
 from sqlalchemy.orm import Session
 
 from api.deps import DispatcherDep, SessionDep, TenantDep
@@ -145,7 +145,11 @@ def get_campaign_status(campaign: CampaignDep, session: SessionDep) -> CampaignD
     responses={409: {"description": "A failed job's inputs changed since it was created"}},
 )
 def retry_failed(
-    campaign: CampaignDep, session: SessionDep, dispatcher: DispatcherDep, body: CampaignRetry | None = None
+    request: Request,
+    campaign: CampaignDep,
+    session: SessionDep,
+    dispatcher: DispatcherDep,
+    body: CampaignRetry | None = None,
 ) -> CampaignRetried:
     """Rerun the campaign's failed jobs, each from the stage that failed (or from the start), as many as
     the free slots allow (or, overriding them, `limit`); the others are listed as waiting."""
@@ -157,5 +161,6 @@ def retry_failed(
     rerun_jobs = []
     for job in failed[:n]:
         stage = failed_stage(job) if body.from_failed_stage else None
+        request.app.state.status_cache.forget(job.id)
         rerun_jobs.append(campaign_job(rerun(session, dispatcher, job, stage)))
     return CampaignRetried(rerun=rerun_jobs, waiting=[j.id for j in failed[n:]])

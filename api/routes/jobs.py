@@ -4,15 +4,25 @@ from __future__ import annotations
 
 import json
 import logging
-from typing import Annotated
+from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response, status
+from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
-from api.deps import DispatcherDep, JobDep, ProjectDep, SessionDep, SettingsDep, StorageDep
+from api.deps import (
+    DispatcherDep,
+    JobDep,
+    ProjectDep,
+    SessionDep,
+    SettingsDep,
+    StorageDep,
+    TenantDep,
+    run_db,
+)
 from api.events import job_events
 from api.schemas import JobCreate, JobDetail, JobOut, JobRerun, OptionsOut, OptionSpec, StageRunOut
+from api.status_cache import Entry
 from shared.db import crud
 from shared.db.crud import ConflictError
 from shared.db.models import Job, JobStatus, Project
@@ -25,8 +35,10 @@ router = APIRouter(tags=["jobs"])
 log = logging.getLogger("midview.api")
 
 
-def job_out(job: Job) -> JobOut:
-    return JobOut(
+def job_fields(job: Any) -> dict[str, Any]:
+    """JobOut's fields of a job (an ORM Job, or a row with the jobs table's columns)."""
+    metrics = job.metrics or {}
+    return dict(
         id=job.id,
         project_id=job.project_id,
         status=job.status.value,
@@ -35,8 +47,8 @@ def job_out(job: Job) -> JobOut:
         progress_percent=round(100.0 * job.progress, 1),
         options=job.options or {},
         timings=job.timings or {},
-        metrics=job.metrics or {},
-        outcome=(job.metrics or {}).get("outcome"),
+        metrics=metrics,
+        outcome=metrics.get("outcome"),
         error=job.error,
         attempt=job.attempt,
         key=job.client_key,
@@ -47,10 +59,13 @@ def job_out(job: Job) -> JobOut:
     )
 
 
-def job_detail(job: Job) -> JobDetail:
-    return JobDetail(
-        **job_out(job).model_dump(), stages=[StageRunOut.model_validate(r) for r in job.stage_runs]
-    )
+def job_out(job: Job) -> JobOut:
+    return JobOut(**job_fields(job))
+
+
+def job_detail(job: Any, stage_runs: list[Any] | None = None) -> JobDetail:
+    runs = job.stage_runs if stage_runs is None else stage_runs
+    return JobDetail(**job_fields(job), stages=[StageRunOut.model_validate(r) for r in runs])
 
 
 @router.get("/options", response_model=OptionsOut, summary="Job options with types, defaults and help")
@@ -203,9 +218,33 @@ def list_jobs(
     return [job_out(j) for j in crud.list_jobs(session, project.id)]
 
 
+def read_job_entry(maker: sessionmaker[Session], job_id: str) -> Entry | None:
+    """The job as GET /jobs/{id} answers it, with its tenant, read in a session of its own (closed on
+    return); None when there is no such job."""
+    with maker() as session:
+        rows = crud.job_status_rows(session, job_id)
+    if rows is None:
+        return None
+    tenant_id, job, stage_runs = rows
+    return Entry(tenant_id, job_detail(job, stage_runs).model_dump_json().encode())
+
+
 @router.get("/jobs/{job_id}", response_model=JobDetail)
-def get_job(job: JobDep) -> JobDetail:
-    return job_detail(job)
+async def get_job(
+    request: Request, job_id: Annotated[str, Path(description="Job id")], tenant: TenantDep
+) -> Response:
+    """The job, its stages and outcome: the status read clients poll. Served from the app's StatusCache
+    (api.status_cache: what workers wrote shows within status_cache_s); a miss reads the database in one
+    trip to a worker thread, with a session of its own."""
+    state = request.app.state
+
+    async def load() -> Entry | None:
+        return await run_db(request, read_job_entry, state.sessionmaker, job_id)
+
+    entry = await state.status_cache.get(job_id, tenant.id, load)
+    if entry is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
+    return Response(entry.body, media_type="application/json")
 
 
 @router.get(
@@ -236,12 +275,13 @@ def job_event_stream(
     response_model=JobOut,
     responses={409: {"description": "The job has already finished"}},
 )
-def cancel_job(job: JobDep, session: SessionDep, dispatcher: DispatcherDep) -> JobOut:
+def cancel_job(request: Request, job: JobDep, session: SessionDep, dispatcher: DispatcherDep) -> JobOut:
     """Cancel a queued or running job (idempotent); 409 if it has succeeded or failed."""
     if job.status == JobStatus.cancelled:
         return job_out(job)
     job = crud.set_job_status(session, job.id, JobStatus.cancelled)
     session.commit()
+    request.app.state.status_cache.forget(job.id)
     try:
         dispatcher.revoke(job.id)
     except Exception:  # the row says cancelled: workers stop at their next progress report
@@ -255,10 +295,17 @@ def cancel_job(job: JobDep, session: SessionDep, dispatcher: DispatcherDep) -> J
     responses={409: {"description": "The job has not finished"}, 503: {"description": "Not queued"}},
 )
 def rerun_job(
-    job: JobDep, session: SessionDep, dispatcher: DispatcherDep, body: JobRerun | None = None
+    request: Request,
+    job: JobDep,
+    session: SessionDep,
+    dispatcher: DispatcherDep,
+    body: JobRerun | None = None,
 ) -> JobOut:
     """Run a finished job again (attempt + 1), from from_stage on or from the start."""
-    return job_out(rerun(session, dispatcher, job, body.from_stage if body else None))
+    try:
+        return job_out(rerun(session, dispatcher, job, body.from_stage if body else None))
+    finally:
+        request.app.state.status_cache.forget(job.id)
 
 
 def rerun(session: Session, dispatcher: Dispatcher, job: Job, from_stage: str | None) -> Job:

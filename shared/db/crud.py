@@ -466,6 +466,25 @@ def get_job(
     return job
 
 
+def job_status_rows(session: Session, job_id: str) -> tuple[str, sa.Row, list[sa.Row]] | None:
+    """(the job's tenant id, the job's row, its stage runs' rows in start order), or None: the columns as
+    plain rows, without the ORM's identity map and loaders (a status read clients poll is this and
+    nothing more: two light queries). The caller checks the tenant."""
+    jobs, runs = Job.__table__, StageRun.__table__
+    stmt = (
+        sa.select(Project.tenant_id, *jobs.c)
+        .join(Project.__table__, Project.id == jobs.c.project_id)
+        .where(jobs.c.id == str(job_id))
+    )
+    job = session.execute(stmt).first()
+    if job is None:
+        return None
+    stage_rows = session.execute(
+        sa.select(*runs.c).where(runs.c.job_id == job.id).order_by(runs.c.started_at)
+    ).all()
+    return job.tenant_id, job, list(stage_rows)
+
+
 def list_jobs(session: Session, project_id: str) -> list[Job]:
     stmt = sa.select(Job).where(Job.project_id == str(project_id)).order_by(Job.created_at)
     return list(session.scalars(stmt))
