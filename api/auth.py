@@ -10,9 +10,11 @@ not cached: each such request asks the database again.
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
 import sqlalchemy as sa
@@ -37,6 +39,7 @@ class KeyCache:
     def __init__(self, ttl_s: float, max_size: int = 10_000, clock=time.monotonic) -> None:
         self.ttl_s, self.max_size, self.clock = ttl_s, max_size, clock
         self._items: OrderedDict[str, tuple[float, Caller]] = OrderedDict()
+        self._pending: dict[str, asyncio.Future[tuple[Caller | None, str | None]]] = {}
         self._lock = threading.Lock()
 
     def get(self, key_hash: str) -> Caller | None:
@@ -45,10 +48,44 @@ class KeyCache:
             if item is None:
                 return None
             if item[0] <= self.clock():
-                del self._items[key_hash]
-                return None
+                return None  # kept for resolve() to serve while its lookup runs
             self._items.move_to_end(key_hash)
             return item[1]
+
+    async def resolve(
+        self, key_hash: str, lookup: Callable[[], Awaitable[tuple[Caller | None, str | None]]]
+    ) -> tuple[Caller | None, str | None]:
+        """(caller, None), or (None, why not): from memory while fresh, else from lookup(). One lookup
+        per key at a time: requests that arrive while it runs get the expired entry if there is one
+        (they would otherwise all wait for a thread and a connection at once, every ttl_s), or share
+        the lookup's answer."""
+        caller = self.get(key_hash)
+        if caller is not None:
+            return caller, None
+        pending = self._pending.get(key_hash)
+        if pending is not None:
+            with self._lock:
+                item = self._items.get(key_hash)
+            if item is not None:
+                return item[1], None
+            return await asyncio.shield(pending)
+
+        async def run() -> tuple[Caller | None, str | None]:
+            try:
+                found, reason = await lookup()
+            finally:
+                self._pending.pop(key_hash, None)
+            if found is None:
+                with self._lock:
+                    self._items.pop(key_hash, None)
+            else:
+                self.put(key_hash, found)
+            return found, reason
+
+        task = asyncio.ensure_future(run())
+        task.add_done_callback(lambda t: t.cancelled() or t.exception())
+        self._pending[key_hash] = task
+        return await asyncio.shield(task)
 
     def put(self, key_hash: str, caller: Caller) -> None:
         if self.ttl_s <= 0:

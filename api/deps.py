@@ -109,12 +109,11 @@ async def get_current_tenant(
         raise _unauthorized("malformed Authorization header (expected 'Bearer <API key>')", "invalid_request")
     state = request.app.state
     key_hash = crud.hash_api_key(token, state.settings.api_key_pepper)
-    caller = state.key_cache.get(key_hash)
+    caller, reason = await state.key_cache.resolve(
+        key_hash, lambda: run_db(request, lookup_key, state.sessionmaker, key_hash)
+    )
     if caller is None:
-        caller, reason = await run_db(request, lookup_key, state.sessionmaker, key_hash)
-        if caller is None:
-            raise _unauthorized(reason or "invalid API key")
-        state.key_cache.put(key_hash, caller)
+        raise _unauthorized(reason or "invalid API key")
     limiter = state.rate_limiter
     ahit = getattr(limiter, "ahit", None)  # a limiter that waits on the network (Redis) has ahit
     wait = await ahit(caller.key_id) if ahit is not None else limiter.hit(caller.key_id)

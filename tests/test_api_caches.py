@@ -110,3 +110,30 @@ def test_batched_redis_limiter_is_exact_for_one_process_and_shared(redis_url):
     assert all(w is None for w in got[:100]) and all(w is not None and w > 0 for w in got[100:])
     other = RedisRateLimiter(redis_url, limit=100, window_s=60.0, prefix=prefix)  # another API process
     assert all(w is not None for w in asyncio.run(hits(other, 3)))
+
+
+def test_key_cache_resolves_one_lookup_at_a_time():
+    clock = Clock()
+    cache = KeyCache(5.0, clock=clock)
+    a = Caller("t1", "n", "k1", "mv_x")
+    lookups: list[str] = []
+
+    def lookup(answer):
+        async def run():
+            lookups.append("db")
+            await asyncio.sleep(0.01)
+            return answer
+
+        return run
+
+    async def scenario() -> None:
+        got = await asyncio.gather(*(cache.resolve("h", lookup((a, None))) for _ in range(20)))
+        assert all(c is a for c, _ in got) and lookups == ["db"]  # 20 requests, one lookup
+        clock.t += 5.01  # expired: the first request looks the key up, the others get the old entry
+        first = asyncio.ensure_future(cache.resolve("h", lookup((None, "API key revoked"))))
+        await asyncio.sleep(0)
+        assert (await cache.resolve("h", lookup((a, None))))[0] is a
+        assert await first == (None, "API key revoked") and len(lookups) == 2  # revoked: forgotten
+        assert (await cache.resolve("h", lookup((None, "API key revoked"))))[0] is None
+
+    asyncio.run(scenario())
