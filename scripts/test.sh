@@ -18,6 +18,12 @@ if ! { command -v chromium && command -v chromedriver; } >/dev/null && command -
     || (apt-get update -qq && apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1)) \
     || echo "test: chromium could not be installed; the browser tests will be skipped"
 fi
+# a redis-server the fault tests can crash and restart (tests/test_service_faults.py)
+if ! command -v redis-server >/dev/null && command -v apt-get >/dev/null; then
+  (apt-get install -y -qq redis-server >/dev/null 2>&1 \
+    || (apt-get update -qq && apt-get install -y -qq redis-server >/dev/null 2>&1)) \
+    || echo "test: redis-server could not be installed; the fault tests will be skipped"
+fi
 set +e
 "$VENV/bin/python" -m pytest -ra "$@"
 rc=$?
