@@ -64,11 +64,11 @@ def ensure_scene(preset: str, work: Path, seed: int, supersample: int) -> Path:
 
 def bench_conf(steps: int, max_width: int, seed: int) -> dict[str, Any]:
     """The `default` preset (3DGS) scaled to `steps`, without test renders, one checkpoint at the end."""
+    from services.conf import merge_conf
     from services.splat import confs, rescale_schedule
-    from services.splat.train import _merge
 
     over = {"max_width": max_width, "seed": seed, "ckpt_every": steps, "keep_ckpts": 1}
-    return _merge(
+    return merge_conf(
         rescale_schedule(confs["default"], steps), {**over, "save_test_renders": False, "log_every": 0}
     )
 

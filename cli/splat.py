@@ -25,13 +25,14 @@ def train_conf(
     (services.splat.rescale_schedule), then `options` (dotted key -> value; None: not given), then the
     `--set key=value` strings. Explicit step numbers are taken as given, not scaled. Raises ValueError
     for an unknown key or a value of the wrong kind."""
+    from services.conf import merge_conf
     from services.splat import parse_overrides, rescale_schedule
-    from services.splat.train import _merge, check_conf
+    from services.splat.train import check_conf
 
     c = rescale_schedule(preset, steps if steps is not None else preset["steps"])
     given = [f"{k}={json.dumps(v)}" for k, v in (options or {}).items() if v is not None]
     for items in (given, list(sets or [])):
-        c = _merge(c, parse_overrides(items, c))
+        c = merge_conf(c, parse_overrides(items, c))
     if c["steps"] < 1:
         raise ValueError("steps must be >= 1")
     return check_conf(c)

@@ -39,6 +39,7 @@ import numpy as np
 import pycolmap
 
 from services.colmap_model import Camera, Pose, read_cameras_json
+from services.conf import merge_conf
 from shared.logging import stage
 
 logger = logging.getLogger("midview.combined_sfm")
@@ -97,13 +98,6 @@ default_conf: dict[str, Any] = {
     "gis": True,
     "colmap_log_level": 1,
 }
-
-
-def _merge(base: dict, over: dict | None) -> dict:
-    out = json.loads(json.dumps(base))
-    for k, v in (over or {}).items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 
 
 # -- database ------------------------------------------------------------------------------------
@@ -303,7 +297,7 @@ def main(
     from services.viewpoints import read_georef_frame
     from shared.matchfile import MatchFile
 
-    conf = _merge(default_conf, conf)
+    conf = merge_conf(default_conf, conf)
     aerial_dir, transfer_dir, out_dir = Path(aerial_dir), Path(transfer_dir), Path(out_dir)
     image_dir = Path(image_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from services.conf import merge_conf
 from shared.job_options import OPTIONAL_STAGES, STAGE_QUEUES, STAGES, JobOptions
 
 logger = logging.getLogger("midview.pipeline")
@@ -69,26 +70,20 @@ def parse_settings_overrides(
     splat: list[str], viewpoints: list[str], matching: list[str], matcher: str = "aliked-lightglue"
 ) -> dict[str, dict]:
     """`KEY=VALUE` strings of the 3DGS, viewpoint and matching (the matcher's) confs -> the job settings
-    that override them (services.splat.train.parse_overrides: ValueError with the reason)."""
+    that override them (services.conf.parse_overrides: ValueError with the reason)."""
+    from services.conf import parse_overrides
     from services.matching.views import confs as match_confs
     from services.splat import confs as splat_confs
-    from services.splat.train import check_conf, parse_overrides
+    from services.splat.train import check_conf
     from services.viewpoints import confs as view_confs
 
     splat_over = parse_overrides(splat, splat_confs["fast"])
-    check_conf(_merge(splat_confs["fast"], splat_over))
+    check_conf(merge_conf(splat_confs["fast"], splat_over))
     return {
         "splat": splat_over,
         "viewpoints": parse_overrides(viewpoints, view_confs["both"]),
         "matching": parse_overrides(matching, match_confs.get(matcher, match_confs["aliked-lightglue"])),
     }
-
-
-def _merge(base: dict, over: dict | None) -> dict:
-    out = json.loads(json.dumps(base))
-    for k, v in (over or {}).items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 
 
 # -- job folder ----------------------------------------------------------------------------------
@@ -99,7 +94,7 @@ class Job:
         self.root = Path(root)
         self.inputs = dict(inputs)
         self.options = options
-        self.settings = _merge(DEFAULT_SETTINGS, settings)
+        self.settings = merge_conf(DEFAULT_SETTINGS, settings)
 
     # construction
     @classmethod
@@ -202,7 +197,7 @@ class Job:
         over: dict[str, Any] = {"mapping": {"seed": self.options.seed}}
         if self.options.out_crs:
             over["export"] = {"out_crs": self.options.out_crs}
-        return _merge(base, _merge(over, self.settings["sfm"]))
+        return merge_conf(base, merge_conf(over, self.settings["sfm"]))
 
     def splat_conf(self) -> dict:
         from services.splat import confs, rescale_schedule, resolve_backend
@@ -219,32 +214,32 @@ class Job:
         }
         if self.options.splat_time_budget_s is not None:
             over["time_budget_s"] = float(self.options.splat_time_budget_s)
-        return _merge(_merge(c, over), self.settings["splat"])
+        return merge_conf(merge_conf(c, over), self.settings["splat"])
 
     def viewpoint_conf(self) -> dict:
         from services import viewpoints
 
         c = viewpoints.confs[self.options.view_planner]
         over = {"views_per_ground_image": int(self.options.views_per_ground_image), "seed": self.options.seed}
-        return _merge(_merge(c, over), self.settings["viewpoints"])
+        return merge_conf(merge_conf(c, over), self.settings["viewpoints"])
 
     def match_conf(self) -> dict:
         from services.matching import views as mv
 
         c = mv.confs[self.options.matcher]
-        return _merge(
-            _merge(c, {"max_keypoints": int(self.options.max_keypoints)}), self.settings["matching"]
+        return merge_conf(
+            merge_conf(c, {"max_keypoints": int(self.options.max_keypoints)}), self.settings["matching"]
         )
 
     def transfer_conf(self) -> dict:
         from services import transfer
 
-        return _merge(transfer.default_conf, self.settings["transfer"])
+        return merge_conf(transfer.default_conf, self.settings["transfer"])
 
     def combined_conf(self) -> dict:
         from services import combined_sfm
 
-        conf = _merge(combined_sfm.default_conf, self.settings["combined"])
+        conf = merge_conf(combined_sfm.default_conf, self.settings["combined"])
         if conf["pos_limits"] is None:  # the same POS limits as the reducer's poses
             conf["pos_limits"] = self.transfer_conf()["pnp"]
         return conf

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from services.colmap_model import Camera, Pose, read_cameras_json, read_model
+from services.conf import merge_conf
 from services.pose_uncertainty import fit_position_std
 from services.prior_pnp import prior_gated_pnp, reprojection_errors
 from services.tracks import complete_tracks
@@ -117,13 +118,6 @@ default_conf: dict[str, Any] = {
     "min_pair_matches": 1,  # verified pairs with fewer matches are written without inliers
     "unverified": "drop",  # ground images without an accepted pose: "drop" or "fundamental" (F-RANSAC only)
 }
-
-
-def _merge(base: dict, over: dict | None) -> dict:
-    out = json.loads(json.dumps(base))
-    for k, v in (over or {}).items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 
 
 # -- data -----------------------------------------------------------------------------------------
@@ -630,7 +624,7 @@ def reduce_views(
     (aerial, ground) to arrays matches (M, 2), scores, inliers, views (index into stats["views"]) and X
     (the 3D point of each match, NaN without 3D). `aerial_features` (image name -> keypoints and
     descriptors of the matching features) lets the aerial points be completed over all those images."""
-    conf = _merge(default_conf, conf)
+    conf = merge_conf(default_conf, conf)
     views = sorted(views, key=lambda v: v.name)
     view_names = [v.name for v in views]
     if len(set(view_names)) != len(view_names):
@@ -688,7 +682,7 @@ def reduce_views(
                 og = _take(og, keep)
                 sub = {k: v[np.isin(pkey, og["view"] * big + og["ir"])] for k, v in pts.items()}
                 sub_obs = [pts_obs[k] for k in np.flatnonzero(np.isin(pkey, og["view"] * big + og["ir"]))]
-                links = link_points(views, sub, sub_obs, og, _merge(conf, {"link": {"px": 1e-3}}))
+                links = link_points(views, sub, sub_obs, og, merge_conf(conf, {"link": {"px": 1e-3}}))
             else:
                 links = link_points(views, pts, pts_obs, og, conf)
             n_links += len(links)
@@ -855,7 +849,7 @@ def main(
 ) -> Path:
     """Run the reducer; returns out_dir/matches.h5 (see the module docstring for the other outputs).
     `features`: the matching features' cache (services.features), for the aerial track completion."""
-    conf = _merge(default_conf, conf)
+    conf = merge_conf(default_conf, conf)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     with stage("reduce", logger):
@@ -964,7 +958,7 @@ def localize_direct(
     so that services.combined_sfm can reconstruct with them (the same procedure for every method)."""
     import pycolmap
 
-    conf = _merge(default_conf, conf)
+    conf = merge_conf(default_conf, conf)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cams = read_cameras_json(cameras) if isinstance(cameras, str | Path) else dict(cameras)

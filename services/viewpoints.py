@@ -34,7 +34,6 @@ target is made a candidate of at least one view.
 
 from __future__ import annotations
 
-import copy
 import json
 import logging
 import math
@@ -46,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from services.colmap_model import Camera, Pose, read_cameras_json, read_model
+from services.conf import merge_conf
 from services.pos import LocalFrame, PosRecord, read_pos
 from shared.logging import stage
 
@@ -138,17 +138,10 @@ _BASE: dict[str, Any] = {
 }
 
 
-def _merge(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
-    for k, v in (over or {}).items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 confs: dict[str, dict[str, Any]] = {
-    "paper": _merge(_BASE, {"planner": "paper"}),
-    "ground-aware": _merge(_BASE, {"planner": "ground-aware"}),
-    "both": _merge(_BASE, {"planner": "both"}),
+    "paper": merge_conf(_BASE, {"planner": "paper"}),
+    "ground-aware": merge_conf(_BASE, {"planner": "ground-aware"}),
+    "both": merge_conf(_BASE, {"planner": "both"}),
 }
 
 
@@ -663,7 +656,7 @@ def _placements(
     # the aerial camera seeing T most like the ground camera does (oblique ones only)
     probe = ViewSpec("probe", "ground-aware", g, cam, look_at(C_g + [0, 0, 10.0], T), T)
     anchors = [
-        n for _, n in aerial_candidates(probe, scene, _merge(conf, {"candidates": {"skip_nadir": True}}))
+        n for _, n in aerial_candidates(probe, scene, merge_conf(conf, {"candidates": {"skip_nadir": True}}))
     ]
     out, weak = [], []  # weak: unoccluded but below min_cov, (covisible fraction, view)
     for height, placement in gc["placements"]:
@@ -875,7 +868,7 @@ def load_scene(
     """The planners' inputs: the aerial model, the ground POS in its frame, the ground camera."""
     import pycolmap
 
-    conf = _merge(_BASE, conf or {})
+    conf = merge_conf(_BASE, conf or {})
     cams_a, poses_a = read_model(sparse)
     cams_a = {n: c for n, c in cams_a.items() if n.split("/", 1)[0] == "aerial"}
     poses_a = {n: p for n, p in poses_a.items() if n in cams_a}
@@ -1009,7 +1002,7 @@ def main(
 ) -> Path:
     """Plan the intermediate views and write them to `out_path` (views.json). Raises NoViews, writing
     nothing, when no view can be planned."""
-    conf = _merge(_BASE, conf)
+    conf = merge_conf(_BASE, conf)
     with stage(f"viewpoints:{conf['planner']}", logger):
         scene = load_scene(sparse, pos, cameras, georef, depth_fn, conf)
         views = plan(scene, conf)

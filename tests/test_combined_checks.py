@@ -9,6 +9,7 @@ import pycolmap
 
 from services import transfer
 from services.colmap_model import Camera, Pose
+from services.conf import merge_conf
 from services.viewpoints import look_at
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
@@ -305,7 +306,7 @@ def test_the_input_model_holds_the_pnp_poses_its_seeding_mode_takes(tmp_path):
     pair_sizes = dict.fromkeys(ids.values(), 100)
 
     def seeded(mode) -> set[str]:
-        conf = combined_sfm._merge(combined_sfm.default_conf, {"seed_pnp_poses": mode, "seed_points": False})
+        conf = merge_conf(combined_sfm.default_conf, {"seed_pnp_poses": mode, "seed_points": False})
         out = tmp_path / f"input-{mode}"
         rec = combined_sfm.build_input_model(
             aerial, tmp_path / "db.db", ids, {}, [], poses, pair_sizes, conf, out

@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from services import transfer
 from services.colmap_model import Camera, Pose
+from services.conf import merge_conf
 from services.pose_uncertainty import fit_position_std, position_std, projection_jacobian
 from services.viewpoints import look_at
 
@@ -62,7 +63,7 @@ def test_the_reducer_rejects_a_pose_its_inliers_leave_undetermined():
     """Exact correspondences in a patch of the image: the PnP pose fits them, but its centre is not
     determined to the metre; the reducer says so and does not accept it. Spread ones are accepted."""
     rng = np.random.default_rng(2)
-    conf = transfer._merge(transfer.default_conf, {"pnp": {"min_spread": 0.0}})  # only the new check
+    conf = merge_conf(transfer.default_conf, {"pnp": {"min_spread": 0.0}})  # only the new check
     kp, X = _points(rng, (430, 600), (300, 440), depth=FACADE)
     r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), conf)
     assert r["num_inliers"] >= 58 and r["position_std_m"] > conf["pnp"]["max_position_std_m"]

@@ -8,11 +8,12 @@ import pytest
 import torch
 
 from services.colmap_model import Camera, write_model
+from services.conf import merge_conf
 from services.splat.model import create_splats, sh_degree_of, splats_from_tensors
 from services.splat.ply import load_ply, save_ply
 from services.splat.projection import viewmat_from_pose
 from services.splat.render import look_at, render
-from services.splat.train import SceneData, Trainer, View, _merge, confs, scaled_view
+from services.splat.train import SceneData, Trainer, View, confs, scaled_view
 
 W, H = 32, 24
 CAM = Camera("PINHOLE", W, H, [30.0, 30.0, 16.0, 12.0])
@@ -73,7 +74,7 @@ def _tiny_conf(**over):
         "lr": {"means": 1.6e-3, "means_final": 1.6e-5, "sh0": 0.02, "scales": 0.01},
         "strategy": {"refine_start_iter": 1000, "refine_stop_iter": 1000},
     }
-    return _merge(_merge(confs["fast"], base), over)
+    return merge_conf(merge_conf(confs["fast"], base), over)
 
 
 @pytest.fixture(scope="module")
@@ -301,7 +302,7 @@ def test_rescale_schedule_both_ways(steps):
     assert c["lr"] == fast["lr"] and s["refine_scale2d_stop_iter"] == 0
     assert fast["steps"] == 2000 and fast["strategy"]["refine_stop_iter"] == 1000  # the preset untouched
     if steps == fast["steps"]:
-        assert c == _merge(fast, {})
+        assert c == merge_conf(fast, {})
 
 
 def test_rescale_schedule_floors_and_errors():
@@ -438,7 +439,7 @@ def test_lowered_views_look_like_the_scene(tiny_survey, tmp_path):
 
     width, min_psnr, min_ncc = 240, 19.5, 0.4
     data = load_scene(tiny_survey / "gt" / "sparse", tiny_survey / "images", width, "aerial/", test_every=0)
-    conf = _merge(
+    conf = merge_conf(
         rescale_schedule(confs["fast"], 500),
         {"max_width": width, "test_every": 0, "ckpt_every": 10**6, "log_every": 0},
     )
@@ -489,7 +490,7 @@ def test_pipeline_training_restarts_when_the_model_changes(tiny, tmp_path):
 
     model, _, pts, cols = tiny
     images = _write_scene(tmp_path, model, _poses(), pts, cols)
-    conf = _merge(confs["fast"], {**_tiny_conf(steps=20), "ckpt_every": 10, "max_width": W})
+    conf = merge_conf(confs["fast"], {**_tiny_conf(steps=20), "ckpt_every": 10, "max_width": W})
     steps_seen: list[str] = []
 
     def train() -> None:
@@ -514,7 +515,7 @@ def test_pipeline_chunks_never_train_a_step_twice_when_the_budget_moves_the_end(
 
     model, _, pts, cols = tiny
     _write_scene(tmp_path, model, _poses(), pts, cols)
-    conf = _merge(
+    conf = merge_conf(
         confs["fast"],
         {**_tiny_conf(steps=20), "ckpt_every": 10, "max_width": W, "time_budget_s": 1e6, "budget_every": 1},
     )

@@ -9,6 +9,7 @@ import pytest
 
 from services import viewpoints as vp
 from services.colmap_model import Camera, Pose
+from services.conf import merge_conf
 from services.pos import ypr_to_matrix
 
 CAM = Camera("PINHOLE", 800, 600, [700.0, 700.0, 400.0, 300.0])
@@ -108,7 +109,7 @@ def test_ground_aware_planner():
         "ground/G0002.jpg": pose_ypr([15.0, 2.0, 1.7], 270.0, 0.0),  # looking west
     }
     scene = make_scene(ground)
-    conf = vp._merge(vp.confs["ground-aware"], {"views_per_ground_image": 3})
+    conf = merge_conf(vp.confs["ground-aware"], {"views_per_ground_image": 3})
     views = vp.plan(scene, conf)
     assert views == sorted(views, key=lambda v: v.name)
     by_source = {g: [v for v in views if v.source == g] for g in ground}
@@ -149,7 +150,7 @@ def test_ground_aware_uses_the_depth_probe_and_skips_occluded_views():
         return np.full((camera.height, camera.width), z, np.float32)
 
     scene.depth_fn = depth_fn
-    conf = vp._merge(vp.confs["ground-aware"], {"views_per_ground_image": 8})
+    conf = merge_conf(vp.confs["ground-aware"], {"views_per_ground_image": 8})
     views = vp.plan(scene, conf)
     assert views
     for v in views:
@@ -164,7 +165,7 @@ def test_ground_aware_uses_the_depth_probe_and_skips_occluded_views():
 def test_paper_planner_selects_views_per_ground_image():
     ground = {"ground/G0001.jpg": pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)}
     scene = make_scene(ground)
-    conf = vp._merge(vp.confs["paper"], {"views_per_ground_image": 2})
+    conf = merge_conf(vp.confs["paper"], {"views_per_ground_image": 2})
     views = vp.plan(scene, conf)
     assert 1 <= len(views) <= 2
     for v in views:
@@ -183,7 +184,7 @@ def test_paper_planner_extra_heights_and_per_planner_counts():
         "paper": {"extra_height_fractions": [0.25], "views_per_ground_image": 2},
         "ground": {"views_per_ground_image": 3},
     }
-    views = vp.plan(scene, vp._merge(vp.confs["both"], over))
+    views = vp.plan(scene, merge_conf(vp.confs["both"], over))
     paper = [v for v in views if v.planner == "paper"]
     assert sum(v.planner == "ground-aware" for v in views) == 3
     # the best aerial camera at both heights: the same target, on the principal ray at 30 m and 15 m
@@ -214,7 +215,7 @@ def test_views_json_round_trip(tmp_path):
 
 
 def test_viewpoint_overrides_take_lists_for_empty_ones():
-    from services.splat.train import parse_overrides
+    from services.conf import parse_overrides
 
     over = parse_overrides(["paper.extra_height_fractions=[0.3, 0.7]"], vp.confs["both"])
     assert over == {"paper": {"extra_height_fractions": [0.3, 0.7]}}
@@ -275,7 +276,7 @@ def test_ground_aware_skips_views_that_see_little_of_what_the_ground_camera_sees
     scene = make_scene({"ground/G0001.jpg": g})
     # back10: C = (0, -25, 11.6) looking at T = (0, 0, 1.6) crosses y = -22 at z = 10.4
     scene.depth_fn = lambda cam, pose: raycast(cam, pose, (-22.0, 0.0, 10.4))
-    base = vp._merge(
+    base = merge_conf(
         vp.confs["ground-aware"],
         {
             "views_per_ground_image": 8,
@@ -283,7 +284,7 @@ def test_ground_aware_skips_views_that_see_little_of_what_the_ground_camera_sees
         },
     )
     names = lambda conf: [v.name for v in vp.plan(scene, conf)]  # noqa: E731
-    assert names(vp._merge(base, {"ground": {"min_covisible": 0.0}})) == [
+    assert names(merge_conf(base, {"ground": {"min_covisible": 0.0}})) == [
         "G-G0001-above10",
         "G-G0001-back05",
         "G-G0001-back10",
@@ -293,15 +294,15 @@ def test_ground_aware_skips_views_that_see_little_of_what_the_ground_camera_sees
     assert all(v.meta["covisible"] >= 0.5 for v in views)
     # when no placement sees enough, the unoccluded ones are kept, the most covisible first
     seen = vp.ground_view_candidates(
-        "ground/G0001.jpg", scene, vp._merge(base, {"ground": {"min_covisible": 1e-6}})
+        "ground/G0001.jpg", scene, merge_conf(base, {"ground": {"min_covisible": 1e-6}})
     )
     most = max(v.meta["covisible"] for v in seen)
-    strict = vp._merge(base, {"ground": {"min_covisible": most + 0.01}})
+    strict = merge_conf(base, {"ground": {"min_covisible": most + 0.01}})
     cands = vp.ground_view_candidates("ground/G0001.jpg", scene, strict)
     assert sorted(v.name for v in cands) == ["G-G0001-above10", "G-G0001-back05", "G-G0001-back10"]
     cov = [v.meta["covisible"] for v in cands]
     assert cov == sorted(cov, reverse=True) and cov[0] == most and cands[-1].name == "G-G0001-back10"
-    assert [v.name for v in vp.plan(scene, vp._merge(strict, {"views_per_ground_image": 1}))] == [
+    assert [v.name for v in vp.plan(scene, merge_conf(strict, {"views_per_ground_image": 1}))] == [
         cands[0].name
     ]
 
@@ -331,7 +332,7 @@ def test_ground_aware_views_look_at_another_point_when_the_target_is_hidden_from
     # the default placements but aerial30, whose line of sight passes the roof 0.86 of the way to the
     # target: within occlusion_ratio 0.85 of it, not occluded
     places = [p for p in vp.confs["ground-aware"]["ground"]["placements"] if p != [30.0, "aerial"]]
-    conf = vp._merge(
+    conf = merge_conf(
         vp.confs["ground-aware"], {"views_per_ground_image": 2, "ground": {"placements": places}}
     )
     scene.depth_fn = raycast
@@ -364,10 +365,10 @@ def test_ground_aware_views_without_aerial_candidates():
     scene = make_scene(ground)
     for n in [n for n in scene.aerial_poses if n != "aerial/A0005.jpg"]:  # the nadir camera only
         del scene.aerial_poses[n], scene.aerial_cameras[n]
-    conf = vp._merge(vp.confs["ground-aware"], {"views_per_ground_image": 2})
+    conf = merge_conf(vp.confs["ground-aware"], {"views_per_ground_image": 2})
     views = vp.plan(scene, conf)
     assert len(views) == 2 and all(v.aerial == [] and v.ground[0] == "ground/G0001.jpg" for v in views)
-    assert vp.plan(scene, vp._merge(conf, {"ground": {"keep_without_aerial": False}})) == []
+    assert vp.plan(scene, merge_conf(conf, {"ground": {"keep_without_aerial": False}})) == []
 
 
 def _street_points(seed: int = 0) -> np.ndarray:
@@ -406,7 +407,7 @@ def test_ground_cameras_are_placed_on_the_terrain():
         assert np.allclose(scene.ground_poses[g].R, ground[g].R)
     assert scene.ground_poses["ground/G0003.jpg"].center[2] == pytest.approx(3.0, abs=0.02)
     # the ground-aware views stand their height above the placed camera
-    views = vp.plan(scene, vp._merge(vp.confs["ground-aware"], {"views_per_ground_image": 2}))
+    views = vp.plan(scene, merge_conf(vp.confs["ground-aware"], {"views_per_ground_image": 2}))
     assert views
     for v in (v for v in views if v.meta["placement"] == "above"):
         assert v.center[2] - scene.ground_poses[v.source].center[2] == pytest.approx(v.meta["height_m"])
@@ -461,7 +462,7 @@ def test_paper_views_are_chosen_by_what_they_see_of_the_ground_cameras_surface()
     x, z = np.meshgrid(np.arange(-15, 15, 0.25), np.arange(0, 10, 0.25))
     scene.points = np.concatenate([_street_points(), np.stack([x.ravel(), np.zeros(x.size), z.ravel()], 1)])
     scene.depth_fn = raycast
-    conf = vp._merge(vp.confs["paper"], {"views_per_ground_image": 1})
+    conf = merge_conf(vp.confs["paper"], {"views_per_ground_image": 1})
     paper = vp.plan_paper(scene, conf)
     surface = scene.ground_surface("ground/G0001.jpg", conf, 60.0, "points")
     cov = {v.name: scene.covisible_fraction(surface, v.camera, v.pose, 96) for v in paper}
@@ -470,7 +471,7 @@ def test_paper_views_are_chosen_by_what_they_see_of_the_ground_cameras_surface()
     assert cov["P-A0001"] > 0.95 and cov["P-A0002"] < 0.5 and cov["P-A0004"] < 0.5
     (best,) = vp.select_paper(paper, scene, conf, 1)
     assert best.name == max(cov, key=cov.get) and "ground/G0001.jpg" in best.ground
-    target = vp._merge(conf, {"paper": {"relevance": "target"}})
+    target = merge_conf(conf, {"paper": {"relevance": "target"}})
     assert [v.name for v in vp.select_paper(vp.plan_paper(scene, target), scene, target, 1)]
     with pytest.raises(ValueError, match="unknown paper.relevance"):
-        vp.select_paper(paper, scene, vp._merge(conf, {"paper": {"relevance": "nearest"}}), 1)
+        vp.select_paper(paper, scene, merge_conf(conf, {"paper": {"relevance": "nearest"}}), 1)

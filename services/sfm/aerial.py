@@ -45,6 +45,7 @@ import pycolmap
 from tqdm import tqdm
 
 from services.colmap_model import Camera
+from services.conf import merge_conf
 from services.pos import (
     LocalFrame,
     PosRecord,
@@ -99,19 +100,12 @@ _BASE: dict[str, Any] = {
 }
 
 
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
-    return out
-
-
 confs: dict[str, dict[str, Any]] = {
-    "sift": _merge(_BASE, {"output": "sfm-sift"}),
-    "sift-fast": _merge(
+    "sift": merge_conf(_BASE, {"output": "sfm-sift"}),
+    "sift-fast": merge_conf(
         _BASE, {"output": "sfm-sift-fast", "features": {"max_image_size": 1024, "max_num_features": 4096}}
     ),
-    "aliked": _merge(
+    "aliked": merge_conf(
         _BASE,
         {
             "output": "sfm-aliked",
@@ -513,7 +507,7 @@ def main(
     `pos_records`: records, or a POS file (any format of services.pos.read_pos); default: the EXIF of
     the images. `cameras`: intrinsics per set (cameras.json); used as given (not refined).
     """
-    conf = _merge(_BASE, conf)
+    conf = merge_conf(_BASE, conf)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}

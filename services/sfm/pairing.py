@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from services.colmap_model import Camera
+from services.conf import merge_conf
 from services.pos import LocalFrame, PosRecord
 
 logger = logging.getLogger("midview.sfm.pairing")
@@ -45,13 +46,6 @@ default_conf: dict[str, Any] = {
         "min_attitude_fraction": 0.9,  # auto: footprint when this share of images has an attitude
     },
 }
-
-
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in (over or {}).items():
-        out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
-    return out
 
 
 # -- polygons ----------------------------------------------------------------------------------
@@ -235,7 +229,7 @@ def get_pairs(
     cameras: dict[str, Camera],
 ) -> tuple[str, list[tuple[str, str]]]:
     """(mode, name pairs) of the images `names` (their POS in `records`, intrinsics priors in `cameras`)."""
-    conf = _merge(default_conf, conf)
+    conf = merge_conf(default_conf, conf)
     ground_z, ground_source = terrain_z(records, frame, conf)
     mode = resolve_mode(conf, len(names), records, ground_z)
     positions = np.array([frame.from_wgs84(records[n].lat, records[n].lon, records[n].h)[0] for n in names])

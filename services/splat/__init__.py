@@ -9,12 +9,14 @@ Backends (`backend.rasterization`): "cpu" (numba tile rasterizer, services/splat
 and "reference" (plain PyTorch, the test oracle); "auto" picks cuda when available.
 """
 
+from services.conf import parse_overrides
+
 from .backend import rasterization, resolve_backend
 from .model import create_splats
 from .ply import load_ply, save_ply
 from .render import load_model, look_at, lowered_pose, render
 from .strategy import DefaultStrategy
-from .train import SceneData, Trainer, View, confs, load_scene, main, parse_overrides, rescale_schedule
+from .train import SceneData, Trainer, View, confs, load_scene, main, rescale_schedule
 
 __all__ = [
     "DefaultStrategy",

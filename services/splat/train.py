@@ -11,7 +11,6 @@ resumes from the latest one and ends with the same parameters as an uninterrupte
 
 from __future__ import annotations
 
-import copy
 import json
 import logging
 import random
@@ -26,6 +25,7 @@ import pycolmap
 import torch
 
 from services.colmap_model import Camera, Pose
+from services.conf import merge_conf
 from shared.logging import stage
 
 from .backend import rasterization, resolve_backend
@@ -84,19 +84,12 @@ _DEFAULT: dict[str, Any] = {
 }
 
 
-def _merge(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 confs: dict[str, dict[str, Any]] = {
     # the 3DGS paper's recipe
-    "default": _merge(_DEFAULT, {"name": "default"}),
+    "default": merge_conf(_DEFAULT, {"name": "default"}),
     # ~10 minutes on 2 CPU cores for a 40-image aerial block (26.6 dB held-out PSNR on the synthetic
     # `small` preset): 2000 steps at 320 px, densification until step 1000, at most 60k Gaussians
-    "fast": _merge(
+    "fast": merge_conf(
         _DEFAULT,
         {
             "name": "fast",
@@ -139,7 +132,7 @@ def rescale_schedule(conf: dict, steps: int) -> dict:
     steps = int(steps)
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    out = _merge(_DEFAULT, conf)
+    out = merge_conf(_DEFAULT, conf)
     f = steps / max(int(out["steps"]), 1)
     out["steps"] = steps
     if f == 1.0:
@@ -157,73 +150,12 @@ def rescale_schedule(conf: dict, steps: int) -> dict:
 def check_conf(conf: dict) -> dict:
     """`conf` if its entries are in range, else ValueError with the reason (the kinds are checked by
     `parse_overrides`)."""
-    c = _merge(_DEFAULT, conf)
+    c = merge_conf(_DEFAULT, conf)
     if not 0.0 <= c["coarse_until"] <= 1.0:
         raise ValueError(f"coarse_until is a fraction of the run, 0 to 1 (0: off), got {c['coarse_until']}")
     if not 0.0 < c["coarse_scale"] <= 1.0:
         raise ValueError(f"coarse_scale must be in (0, 1], got {c['coarse_scale']}")
     return conf
-
-
-def _parse_value(text: str) -> Any:
-    """JSON (numbers, true/false/null, lists, quoted strings), else a Python float or bool word, else the
-    text itself."""
-    try:
-        return json.loads(text)
-    except ValueError:
-        pass
-    try:
-        return float(text)
-    except ValueError:
-        pass
-    words = {"true": True, "false": False, "none": None}
-    return words.get(text.strip().lower(), text)
-
-
-def parse_overrides(items: list[str], base: dict) -> dict:
-    """`key=value` strings (dotted keys for nested entries: "strategy.refine_every=100",
-    "lr.means=3e-4") -> a nested override of `base` (merge it with `_merge`).
-
-    Keys must exist in `base`; a value must fit the kind of the one it replaces (ints stay ints, a number
-    for a float, a number or null for null, a list of the same length for a list, of any length for an
-    empty one, no group replaced by a value). Raises ValueError with the reason."""
-    over: dict = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise ValueError(f"{item!r}: expected key=value, e.g. strategy.refine_every=100")
-        *path, last = key.split(".")
-        cur, dst = base, over
-        for i, k in enumerate(path):
-            if not isinstance(cur.get(k), dict):
-                raise ValueError(f"{key}: unknown key {'.'.join(path[: i + 1])!r}")
-            cur, dst = cur[k], dst.setdefault(k, {})
-        if last not in cur:
-            known = ", ".join(sorted(cur))
-            raise ValueError(f"{key}: unknown key {last!r} (known here: {known})")
-        old, value = cur[last], _parse_value(text)
-        if isinstance(old, dict):
-            raise ValueError(f"{key} is a group: set its entries, e.g. {key}.{next(iter(old), 'x')}=...")
-        if isinstance(old, bool):
-            if not isinstance(value, bool):
-                raise ValueError(f"{key}: expected true or false, got {text!r}")
-        elif isinstance(old, int):
-            if isinstance(value, float) and value.is_integer():
-                value = int(value)
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ValueError(f"{key}: expected an integer, got {text!r}")
-        elif isinstance(old, float):
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(f"{key}: expected a number, got {text!r}")
-            value = float(value)
-        elif old is None:  # the confs' optional entries are numbers
-            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
-                raise ValueError(f"{key}: expected a number or null, got {text!r}")
-        elif isinstance(old, list) and not (isinstance(value, list) and (len(value) == len(old) or not old)):
-            raise ValueError(f"{key}: expected a list of {len(old)} values, e.g. {json.dumps(old)}")
-        dst[last] = value
-    return over
 
 
 @dataclass
@@ -366,7 +298,7 @@ class Trainer:
     """Optimises Gaussians on `data` with the 3DGS recipe (see `confs`), saving into `out`."""
 
     def __init__(self, conf: dict, data: SceneData, out: str | Path, backend: str = "auto"):
-        self.conf = check_conf(_merge(_DEFAULT, conf))
+        self.conf = check_conf(merge_conf(_DEFAULT, conf))
         self.data = data
         self.out = Path(out)
         self.backend = resolve_backend(backend)
@@ -698,7 +630,7 @@ def main(
     `images`; returns `out` (see the module docstring for its files)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    conf = _merge(_DEFAULT, conf)
+    conf = merge_conf(_DEFAULT, conf)
     with stage("splat", log):
         t0 = time.perf_counter()
         data = load_scene(sparse, images, conf["max_width"], prefix, conf["test_every"])
