@@ -31,8 +31,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from services.colmap_model import Camera, Pose  # noqa: E402
+from services.geometry import scaled_camera  # noqa: E402
 from services.splat.loss import ssim  # noqa: E402
-from services.viewpoints import scaled_camera  # noqa: E402
 from services.views import GroundTruthRenderer, SplatRenderer  # noqa: E402
 
 

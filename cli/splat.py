@@ -131,9 +131,9 @@ def render(
     import numpy as np
 
     from services.colmap_model import Camera, Pose, read_model
+    from services.geometry import scaled_intrinsics
     from services.splat import load_model, lowered_pose
     from services.splat import render as render_view
-    from services.splat.train import scaled_camera
 
     if cameras is None:
         cameras = (model if model.is_dir() else model.parent) / "views.json"
@@ -160,7 +160,7 @@ def render(
     from tqdm import tqdm
 
     for name, (cam, pose) in tqdm(views.items(), desc="render"):
-        K, w, h = scaled_camera(cam.K, cam.width, cam.height, max_width)
+        K, w, h = scaled_intrinsics(cam.K, cam.width, cam.height, max_width)
         cam = Camera("PINHOLE", w, h, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
         if lower is not None:
             pose = lowered_pose(pose, lower, ground_z)

@@ -40,6 +40,8 @@ import pycolmap
 
 from services.colmap_model import Camera, Pose, read_cameras_json
 from services.conf import merge_conf
+from services.geometry import pose_of_image
+from services.pos import DEFAULT_STD_XY
 from shared.logging import stage
 
 logger = logging.getLogger("midview.combined_sfm")
@@ -214,7 +216,7 @@ def verify_ground_pair(
     (cam_from_world; std = (horizontal m, vertical m, attitude deg)). A fundamental matrix alone
     accepts repeated facade patterns between images that share nothing; the POS rejects them.
     Returns no inliers when the check fails."""
-    from services.transfer import rotation_angle_deg
+    from services.geometry import rotation_angle_deg
     from services.viewpoints import angle_deg
 
     none = np.zeros((0, 2), np.int64)
@@ -485,7 +487,11 @@ def main(
         records = {r.name: r for r in read_pos(pos) if r.name.startswith("aerial/")}
         geo_summary = None
         if conf["georef"] and not conf["mapping"]["fix_aerial"]:
-            sigma = float(np.median([r.std_xy or 3.0 for r in records.values()])) if records else 3.0
+            sigma = (
+                float(np.median([r.std_or_default()[0] for r in records.values()]))
+                if records
+                else DEFAULT_STD_XY
+            )
             try:
                 geo = georef_mod.georeference(rec, records, frame, sigma)
                 geo_summary = {**georef_mod.summary(geo), "method": geo.method}
@@ -657,16 +663,12 @@ def drop_ill_determined(
             if im.name.startswith("ground/") and im.has_pose and im.name not in fixed
         ]
 
-    def pose_of(im: pycolmap.Image) -> Pose:
-        m = np.asarray(im.cam_from_world().matrix())
-        return Pose(m[:, :3].copy(), m[:, 3].copy())
-
     out: dict[str, str] = {}
     if priors and pnp_conf:
         for im in candidates():
             if im.name in priors:
                 std = (prior_std or {}).get(im.name)
-                reasons = prior_agreement(pose_of(im), priors[im.name], std, pnp_conf)[2]
+                reasons = prior_agreement(pose_of_image(im), priors[im.name], std, pnp_conf)[2]
                 if reasons:
                     rec.deregister_frame(im.frame_id)
                     out[im.name] = "; ".join(reasons)
@@ -678,7 +680,7 @@ def drop_ill_determined(
             for im in ims:
                 obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
                 stds[im.image_id] = fit_position_std(
-                    pose_of(im),
+                    pose_of_image(im),
                     np.asarray(im.camera.calibration_matrix()),
                     np.array([o[0] for o in obs], float).reshape(-1, 2),
                     np.array([o[1] for o in obs], float).reshape(-1, 3),

@@ -50,6 +50,8 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose, read_cameras_json, read_model
 from services.conf import merge_conf
+from services.geometry import pose_of_image, rotation_angle_deg
+from services.pos import DEFAULT_STD_ATT, DEFAULT_STD_XY, DEFAULT_STD_Z
 from services.pose_uncertainty import fit_position_std
 from services.prior_pnp import prior_gated_pnp, reprojection_errors
 from services.tracks import complete_tracks
@@ -386,8 +388,6 @@ def merge_one_to_one(cand: dict[str, np.ndarray], view_names: list[str]) -> np.n
 
 
 # -- step 3: PnP -----------------------------------------------------------------------------------
-def rotation_angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def prior_chi2(dxy: float, dz: float, drot: float, std: tuple[float, float, float], pc: dict) -> float:
@@ -408,7 +408,7 @@ def prior_agreement(
     d = pose.center - prior.center
     dxy, dz = float(np.linalg.norm(d[:2])), float(abs(d[2]))
     drot = rotation_angle_deg(pose.R @ prior.R.T)
-    sxy, sz, satt = prior_std or (3.0, 5.0, 5.0)
+    sxy, sz, satt = prior_std or (DEFAULT_STD_XY, DEFAULT_STD_Z, DEFAULT_STD_ATT)
     k = pc["prior_sigmas"]
     lim_xy, lim_z = max(k * sxy * math.sqrt(2.0), pc["min_position_m"]), max(k * sz, pc["min_height_m"])
     lim_rot = max(k * satt * math.sqrt(3.0), pc["min_rotation_deg"])
@@ -605,7 +605,7 @@ def ground_priors(
         if image_set(n) != "ground" or pose is None:
             continue
         poses[n] = pose
-        std[n] = (r.std_xy or 3.0, r.std_z or 5.0, r.std_att or 5.0)
+        std[n] = r.std_or_default()
     return poses, std
 
 
@@ -924,8 +924,7 @@ def lift_aerial_keypoints(
     if len(ids) < k:
         return out
     X = np.array([rec.points3D[i].xyz for i in ids])
-    m = np.asarray(img.cam_from_world().matrix())
-    pose = Pose(m[:, :3], m[:, 3])
+    pose = pose_of_image(img)
     K = np.asarray(img.camera.calibration_matrix())
     uv, z = pose.project(K, X)
     ok = z > 0

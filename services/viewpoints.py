@@ -46,6 +46,7 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose, read_cameras_json, read_model
 from services.conf import merge_conf
+from services.geometry import look_at, scaled_camera
 from services.pos import LocalFrame, PosRecord, read_pos
 from shared.logging import stage
 
@@ -149,19 +150,6 @@ confs: dict[str, dict[str, Any]] = {
 def rot_x(theta: float) -> np.ndarray:
     c, s = math.cos(theta), math.sin(theta)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> Pose:
-    """A camera at `center` looking at `target`, its image x axis level (perpendicular to `up`, ENU z)."""
-    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, float)
-    z = np.asarray(target, float) - np.asarray(center, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-9:  # looking straight down or up: image top towards north
-        x = np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return Pose.from_center(np.stack([x, y, z], 1), center)
 
 
 def optical_axis(pose: Pose) -> np.ndarray:
@@ -275,17 +263,6 @@ def unproject(K: np.ndarray, pose: Pose, u: np.ndarray, v: np.ndarray, z: np.nda
     """(N, 3) world points at z-depths `z` behind pixels (u, v) (their centres) of a camera (K, pose)."""
     x_cam = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
     return (x_cam - pose.t[None]) @ pose.R  # R^T (x - t)
-
-
-def scaled_camera(camera: Camera, max_width: int, fov_scale: float = 1.0) -> Camera:
-    """A PINHOLE copy of `camera` at most `max_width` wide; focal length divided by fov_scale."""
-    s = min(1.0, max_width / camera.width)
-    w, h = round(camera.width * s), round(camera.height * s)
-    K = camera.K
-    sx, sy = w / camera.width, h / camera.height
-    return Camera(
-        "PINHOLE", w, h, [K[0, 0] * sx / fov_scale, K[1, 1] * sy / fov_scale, K[0, 2] * sx, K[1, 2] * sy]
-    )
 
 
 # -- scene ---------------------------------------------------------------------------------------
@@ -886,7 +863,7 @@ def load_scene(
             logger.warning("%s: the POS has no attitude; no views planned for it", n)
             continue
         ground_poses[n] = pose
-        ground_std[n] = (r.std_xy or 3.0, r.std_z or 5.0, r.std_att or 5.0)
+        ground_std[n] = r.std_or_default()
     terrain = scene_terrain_z(points, ground_poses, conf["ground"]["camera_height_m"])
     scene = Scene(
         cams_a,

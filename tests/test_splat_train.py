@@ -430,10 +430,11 @@ def test_lowered_views_look_like_the_scene(tiny_survey, tmp_path):
     shuffled between Gaussians (17.5 dB, -0.05), the trained model yawed by 45 degrees (18.8 dB, 0.24) and the
     flat mean-colour image (correlation 0)."""
     from services.colmap_model import read_model
+    from services.geometry import scaled_intrinsics
     from services.splat import load_scene
     from services.splat.loss import psnr, ssim
     from services.splat.model import create_splats
-    from services.splat.train import rescale_schedule, scaled_camera
+    from services.splat.train import rescale_schedule
     from services.viewpoints import paper_viewpoint, ray_plane, ray_target_points
     from services.views import GroundTruthRenderer
 
@@ -460,7 +461,7 @@ def test_lowered_views_look_like_the_scene(tiny_survey, tmp_path):
     scores: dict[str, list[tuple[float, float, float]]] = {}
     for name in sorted(n for n in poses if n.startswith("aerial/")):
         cam, pose = cams[name], poses[name]
-        K, w, h = scaled_camera(cam.K, cam.width, cam.height, width)
+        K, w, h = scaled_intrinsics(cam.K, cam.width, cam.height, width)
         cam = Camera("PINHOLE", w, h, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
         axis = pose.R[2]
         t = ray_target_points(pose.center, axis, data.points) or ray_plane(pose.center, axis, 0.0)

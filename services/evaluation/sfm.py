@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from services.geometry import rotation_angle_deg
 from services.pos import LocalFrame
 
 from .common import EvaluationError, image_set, read_gt_model, require_scene
@@ -58,10 +59,6 @@ def read_reconstruction(model_dir: Path) -> tuple[pycolmap.Reconstruction, Path]
             best = (rec, path)
     assert best is not None
     return best
-
-
-def _rotation_angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
 def align_centres(src: np.ndarray, tgt: np.ndarray, max_error: float) -> tuple[np.ndarray, int] | None:
@@ -173,7 +170,7 @@ def evaluate_sfm(
         centres = to_truth(np.array([est[n][1] for n in names]))
         for n, c in zip(names, centres, strict=True):
             rows[n]["absolute_error"] = float(np.linalg.norm(c - gt_poses[n].center))
-            rows[n]["absolute_rotation_error"] = _rotation_angle_deg(gt_poses[n].R @ (est[n][0] @ R_t.T).T)
+            rows[n]["absolute_rotation_error"] = rotation_angle_deg(gt_poses[n].R @ (est[n][0] @ R_t.T).T)
 
     src = {n: est[n][1] for n in names}
     tgt = {n: gt_poses[n].center for n in names}
@@ -188,7 +185,7 @@ def evaluate_sfm(
         R_s = M[:, :3] / all_al[1]["scale"]
         for n in names:
             rows[n]["position_error"] = float(np.linalg.norm(_apply(M, src[n])[0] - tgt[n]))
-            rows[n]["rotation_error"] = _rotation_angle_deg(gt_poses[n].R @ (est[n][0] @ R_s.T).T)
+            rows[n]["rotation_error"] = rotation_angle_deg(gt_poses[n].R @ (est[n][0] @ R_s.T).T)
     per_image = list(rows.values())
 
     sets = list(dict.fromkeys([*conf["sets"], *sorted({image_set(n) for n in gt_poses})]))

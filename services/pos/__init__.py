@@ -16,10 +16,20 @@ from .io import PosRow, match_names, read_pos, sniff_format
 from .json_format import parse_pos_json, read_pos_json, write_pos_json
 from .odm import parse_crs_line, parse_geo_txt, read_geo_txt, write_geo_txt
 from .pos_csv import parse_pos_csv, read_pos_csv, write_pos_csv
-from .records import PosError, PosRecord, check_against_images
+from .records import (
+    DEFAULT_STD_ATT,
+    DEFAULT_STD_XY,
+    DEFAULT_STD_Z,
+    PosError,
+    PosRecord,
+    check_against_images,
+)
 
 __all__ = [
     "CRSError",
+    "DEFAULT_STD_ATT",
+    "DEFAULT_STD_XY",
+    "DEFAULT_STD_Z",
     "ExifData",
     "LocalFrame",
     "PosError",

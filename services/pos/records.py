@@ -18,6 +18,12 @@ class PosError(ValueError):
         super().__init__("invalid POS:\n  " + "\n  ".join(shown) + more)
 
 
+# the uncertainty assumed where a POS states none (consumer GNSS in EXIF, a gimbal's attitude)
+DEFAULT_STD_XY = 3.0  # metres
+DEFAULT_STD_Z = 5.0  # metres
+DEFAULT_STD_ATT = 5.0  # degrees
+
+
 @dataclass
 class PosRecord:
     """Position (WGS84, ellipsoidal height) and optional attitude of one image."""
@@ -32,6 +38,14 @@ class PosRecord:
     std_att: float | None = None  # degrees
     crs: str | None = None  # the CRS of the POS source (positions here are WGS84 whatever it was)
     rel_alt: float | None = None  # metres above the take-off point (DJI XMP RelativeAltitude)
+
+    def std_or_default(self) -> tuple[float, float, float]:
+        """(std_xy m, std_z m, std_att deg), the defaults where the POS states none."""
+        return (
+            self.std_xy or DEFAULT_STD_XY,
+            self.std_z or DEFAULT_STD_Z,
+            self.std_att or DEFAULT_STD_ATT,
+        )
 
     @property
     def image_set(self) -> str:

@@ -47,6 +47,8 @@ from tqdm import tqdm
 from services.colmap_model import Camera
 from services.conf import merge_conf
 from services.pos import (
+    DEFAULT_STD_XY,
+    DEFAULT_STD_Z,
     LocalFrame,
     PosRecord,
     camera_from_exif,
@@ -92,7 +94,7 @@ _BASE: dict[str, Any] = {
         "refine_intrinsics": None,  # None: refine unless cameras.json gave them
     },
     "camera": {"model": "SIMPLE_RADIAL"},
-    "pos": {"default_std_xy": 3.0, "default_std_z": 5.0},  # metres, when the POS gives none (EXIF GPS)
+    "pos": {"default_std_xy": DEFAULT_STD_XY, "default_std_z": DEFAULT_STD_Z},  # when the POS gives none
     "georef": dict(georef_mod.default_conf),
     "export": dict(export_mod.default_conf),  # out_crs: "auto" (the POS CRS unless WGS84), None or a code
     "verify_images": "decode",  # "decode" (every image decoded once), "header" or "none"

@@ -28,6 +28,7 @@ import pycolmap
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from services.geometry import rotation_angle_deg
 from services.pos import LocalFrame, PosRecord
 
 logger = logging.getLogger("midview.sfm.georef")
@@ -125,14 +126,10 @@ def mean_rotation(Rs: list[np.ndarray]) -> np.ndarray:
 
 def robust_mean_rotation(Rs: list[np.ndarray], inlier_deg: float) -> tuple[np.ndarray, int]:
     """Chordal mean of the rotations within `inlier_deg` of the one with most such neighbours."""
-    counts = [sum(_rotation_angle_deg(a.T @ b) <= inlier_deg for b in Rs) for a in Rs]
+    counts = [sum(rotation_angle_deg(a.T @ b) <= inlier_deg for b in Rs) for a in Rs]
     best = Rs[int(np.argmax(counts))]
-    inl = [b for b in Rs if _rotation_angle_deg(best.T @ b) <= inlier_deg]
+    inl = [b for b in Rs if rotation_angle_deg(best.T @ b) <= inlier_deg]
     return mean_rotation(inl), len(inl)
-
-
-def _rotation_angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def _similarity_from_attitudes(src: np.ndarray, tgt: np.ndarray, R: np.ndarray) -> tuple[float, np.ndarray]:
@@ -350,7 +347,7 @@ def refine_joint(
     prior = choose_prior(R_rec, len(pairs), conf, src) if R_rec is not None else "none"
     # attitudes far off the initial rotation (a wrong gimbal reading) are left out
     pairs = [
-        i for i in pairs if _rotation_angle_deg(R_pos[i].T @ R0 @ R_rec[i]) <= conf["attitude_inlier_deg"]
+        i for i in pairs if rotation_angle_deg(R_pos[i].T @ R0 @ R_rec[i]) <= conf["attitude_inlier_deg"]
     ]
     pos_stated = np.isfinite(pos_std)
     att_std = np.full(n, np.nan) if att_std_deg is None else np.asarray(att_std_deg, float)
@@ -545,7 +542,7 @@ def estimate(
     if pairs:
         for n, Rr, Rp in zip(names, R_rec or [], R_pos or [], strict=True):
             if Rp is not None:
-                geo.attitude_deg[n] = _rotation_angle_deg(Rp.T @ (R @ Rr))
+                geo.attitude_deg[n] = rotation_angle_deg(Rp.T @ (R @ Rr))
     geo.levels = tilt_figures(geo.apply(src), [R @ Rr for Rr in R_rec] if R_rec is not None else None)
     if cond["coplanar"]:
         logger.info(

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
-from services.pos import LocalFrame, PosRecord
+from services.pos import DEFAULT_STD_XY, DEFAULT_STD_Z, LocalFrame, PosRecord
 
 logger = logging.getLogger("midview.sfm.verify")
 
@@ -37,8 +37,8 @@ default_conf: dict[str, Any] = {
     "epipolar_deg": 4.0,
     "min_consistent": 0.8,
     "baseline_sigmas": 3.0,
-    "default_std_xy": 3.0,  # metres, when the POS gives none
-    "default_std_z": 5.0,
+    "default_std_xy": DEFAULT_STD_XY,  # metres, when the POS gives none
+    "default_std_z": DEFAULT_STD_Z,
     "seed": 0,
 }
 

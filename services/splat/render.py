@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from services.colmap_model import Camera, Pose
+from services.geometry import look_at
 
 from .backend import rasterization, resolve_backend
 from .model import activated, sh_degree_of, splats_from_tensors
@@ -79,18 +80,6 @@ def render(
     out, alpha = out.cpu().numpy(), alpha[..., 0].cpu().numpy()
     depth = np.where(alpha > 0, out[..., 3], 0.0).astype(np.float32)
     return {"color": np.clip(out[..., :3], 0, 1).astype(np.float32), "depth": depth, "alpha": alpha}
-
-
-def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> Pose:
-    """Pose of a camera at `center` looking at `target`, image x level with the world's `up` (ENU: z)."""
-    z = np.asarray(target, float) - np.asarray(center, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-9:  # looking straight along up: any x
-        x = np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return Pose.from_center(np.stack([x, y, z], 1), center)
 
 
 def lowered_pose(pose: Pose, factor: float = 0.5, ground_z: float = 0.0) -> Pose:

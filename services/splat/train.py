@@ -26,6 +26,7 @@ import torch
 
 from services.colmap_model import Camera, Pose
 from services.conf import merge_conf
+from services.geometry import scaled_intrinsics
 from shared.logging import stage
 
 from .backend import rasterization, resolve_backend
@@ -210,19 +211,6 @@ def load_image(path: Path, width: int, height: int) -> torch.Tensor:
     return torch.from_numpy(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)).float() / 255.0
 
 
-def scaled_camera(
-    K: np.ndarray, width: int, height: int, max_width: int | None
-) -> tuple[np.ndarray, int, int]:
-    """K and size of an image downsampled to at most `max_width` pixels wide (COLMAP convention: the
-    principal point scales with the image)."""
-    if not max_width or width <= max_width:
-        return np.asarray(K, float), width, height
-    w = int(max_width)
-    h = max(1, int(round(height * w / width)))
-    S = np.diag([w / width, h / height, 1.0])
-    return S @ K, w, h
-
-
 def load_scene(
     sparse: str | Path,
     images: str | Path | None,
@@ -238,7 +226,7 @@ def load_scene(
         if not img.has_pose or not img.name.startswith(prefix):
             continue
         c = Camera.from_pycolmap(img.camera)
-        K, w, h = scaled_camera(c.K, c.width, c.height, max_width)
+        K, w, h = scaled_intrinsics(c.K, c.width, c.height, max_width)
         m = img.cam_from_world().matrix()
         v = View(img.name, torch.tensor(K, dtype=torch.float32), viewmat_from_pose(m[:, :3], m[:, 3]), w, h)
         ids = [p.point3D_id for p in img.points2D if p.has_point3D()]
