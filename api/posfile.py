@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import Literal
 
-from services.pos import PosError, PosRecord, parse_pos_csv
+from services.pos import PosError, PosRecord, parse_pos_csv, sniff_text
 from shared.images import ImageError
 from shared.storage import Storage, StorageError
 
@@ -25,16 +25,9 @@ _PARSERS: dict[str, tuple[str, str]] = {
 
 
 def detect_format(text: str, filename: str | None) -> str:
-    """csv, json or geotxt from the file name's suffix, else from the first non-empty line."""
-    suffix = PurePath(filename or "").suffix.lower()
-    if suffix in (".csv", ".json"):
-        return suffix[1:]
-    first = next((ln.strip() for ln in text.splitlines() if ln.strip()), "")
-    if first.startswith(("[", "{")):
-        return "json"
-    if first.startswith("#") or "," in first:
-        return "csv"
-    return "geotxt"
+    """csv, json or geotxt (the API's name of geo.txt) as services.pos sniffs them."""
+    fmt = sniff_text(text, filename)
+    return "geotxt" if fmt == "geo" else fmt
 
 
 def _parser(fmt: str) -> Callable[..., list[PosRecord]]:

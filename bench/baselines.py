@@ -22,6 +22,7 @@ sys.path.insert(0, str(ROOT))
 
 from services import pairs as pairs_mod  # noqa: E402
 from services.matching import direct  # noqa: E402
+from services.synth import SCENE_FILES, scene_complete  # noqa: E402
 from shared.images import list_images  # noqa: E402
 from shared.logging import setup_logging  # noqa: E402
 
@@ -30,11 +31,6 @@ logger = logging.getLogger("midview.bench")
 DEFAULT_TEXTURES = ROOT.parent / "shared" / "data" / "lund_street"
 METHODS = ("sift", "aliked-lightglue")
 REFERENCE = "sift"
-SCENE_FILES = ("images", "pos.csv", "cameras.json", "gt/sparse", "gt/depth.h5", "gt/covisible.csv")
-
-
-def scene_complete(scene: Path) -> bool:
-    return all((scene / f).exists() for f in SCENE_FILES)
 
 
 def ensure_scene(preset: str, seed: int, scene: Path, textures: Path | None) -> Path:

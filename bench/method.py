@@ -36,25 +36,17 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from services import pipeline  # noqa: E402
+from services.synth import scene_complete  # noqa: E402
 from shared.logging import setup_logging  # noqa: E402
 
 logger = logging.getLogger("midview.bench.method")
 
 DEFAULT_TEXTURES = ROOT.parent / "shared" / "data" / "lund_street"
-SCENE_FILES = (
-    "images",
-    "pos.csv",
-    "cameras.json",
-    "gt/sparse",
-    "gt/depth.h5",
-    "gt/covisible.csv",
-    "gt/scene.json",
-)
 SHARED = ("sfm", "splat", "features")  # stage folders of the base job, linked into every configuration
 
 
 def ensure_scene(preset: str, seed: int, scene: Path, textures: Path | None) -> Path:
-    if all((scene / f).exists() for f in SCENE_FILES):
+    if scene_complete(scene):
         return scene
     from services import synth
 

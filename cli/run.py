@@ -236,17 +236,6 @@ def run(
 
 
 # -- demo ------------------------------------------------------------------------------------------
-def scene_complete(scene: Path) -> bool:
-    files = (
-        "images",
-        "pos.csv",
-        "cameras.json",
-        "gt/sparse",
-        "gt/depth.h5",
-        "gt/covisible.csv",
-        "gt/scene.json",
-    )
-    return all((scene / f).exists() for f in files)
 
 
 def baseline_reconstruction(job, label: str, match_file: Path, match_conf: dict, out_dir: Path) -> Path:
@@ -439,7 +428,7 @@ def demo(
     scene = out / "scene"
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    if not scene_complete(scene):
+    if not synth.scene_complete(scene):
         console.print(f"rendering the {preset} survey into {scene} (textures: {tex})")
         synth.main(
             synth.confs[preset], scene, seed=seed, textures_dir=tex, supersample=supersample, overwrite=True

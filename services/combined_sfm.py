@@ -294,9 +294,9 @@ def main(
     from services.pos import read_pos
     from services.sfm import georef as georef_mod
     from services.sfm.aerial import colmap_log_level
+    from services.sfm.georef import read_georef_frame
     from services.transfer import default_conf as transfer_default_conf
     from services.transfer import ground_priors
-    from services.viewpoints import read_georef_frame
     from shared.matchfile import MatchFile
 
     conf = merge_conf(default_conf, conf)

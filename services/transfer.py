@@ -596,7 +596,8 @@ def ground_priors(
 ) -> tuple[dict[str, Pose], dict[str, tuple[float, float, float]]]:
     """Ground POS poses in the aerial model frame and their standard deviations."""
     from services.pos import read_pos
-    from services.viewpoints import pos_in_frame, read_georef_frame
+    from services.sfm.georef import read_georef_frame
+    from services.viewpoints import pos_in_frame
 
     records = read_pos(pos) if isinstance(pos, str | Path) else list(pos)
     frame = read_georef_frame(georef)
@@ -819,7 +820,7 @@ def pose_document(poses: dict[str, dict], georef: str | Path | None) -> dict:
     """ground_poses.json: PnP poses in the model frame (and WGS84 with the georef frame)."""
     frame = None
     if georef is not None:
-        from services.viewpoints import read_georef_frame
+        from services.sfm.georef import read_georef_frame
 
         frame = read_georef_frame(georef)
     out = {}

@@ -48,6 +48,7 @@ from services.colmap_model import Camera, Pose, read_cameras_json, read_model
 from services.conf import merge_conf
 from services.geometry import look_at, scaled_camera
 from services.pos import LocalFrame, PosRecord, read_pos
+from services.sfm.georef import read_georef_frame
 from shared.logging import stage
 
 logger = logging.getLogger("midview.viewpoints")
@@ -812,11 +813,6 @@ def plan(scene: Scene, conf: dict) -> list[ViewSpec]:
 
 
 # -- inputs --------------------------------------------------------------------------------------
-def read_georef_frame(path: str | Path) -> LocalFrame:
-    f = json.loads(Path(path).read_text())["frame"]
-    return LocalFrame(float(f["lat0"]), float(f["lon0"]), float(f["h0"]))
-
-
 def pos_in_frame(
     records: list[PosRecord], frame: LocalFrame, names: list[str] | None = None
 ) -> dict[str, tuple[Pose | None, np.ndarray, PosRecord]]:

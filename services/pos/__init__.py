@@ -12,7 +12,7 @@ from .exif import (
     record_from_exif,
 )
 from .frames import CRSError, LocalFrame, from_wgs84, is_wgs84_geographic, parse_crs, to_wgs84
-from .io import PosRow, match_names, read_pos, sniff_format
+from .io import PosRow, match_names, read_pos, sniff_format, sniff_text
 from .json_format import parse_pos_json, read_pos_json, write_pos_json
 from .odm import parse_crs_line, parse_geo_txt, read_geo_txt, write_geo_txt
 from .pos_csv import parse_pos_csv, read_pos_csv, write_pos_csv
@@ -59,6 +59,7 @@ __all__ = [
     "read_xmp",
     "record_from_exif",
     "sniff_format",
+    "sniff_text",
     "to_wgs84",
     "write_geo_txt",
     "write_pos_csv",

@@ -11,7 +11,7 @@ import math
 import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import numpy as np
 
@@ -122,15 +122,22 @@ def sniff_format(path: Path) -> str:
     """'exif', 'csv', 'json' or 'geo' for a POS path, from its extension or else its first line."""
     if path.is_dir():
         return "exif"
-    suffix = path.suffix.lower()
-    if suffix in (".csv", ".json"):
-        return suffix[1:]
+    if path.suffix.lower() in (".csv", ".json"):
+        return path.suffix.lower()[1:]
     try:
         with open(path, encoding="utf-8-sig") as f:
             head = f.read(4096)
     except (OSError, UnicodeDecodeError) as e:
         raise PosError([f"{path}: cannot read: {e}"]) from None
-    first = next((ln.strip() for ln in head.splitlines() if ln.strip()), "")
+    return sniff_text(head, path.name)
+
+
+def sniff_text(text: str, filename: str | None = None) -> str:
+    """'csv', 'json' or 'geo' for POS text: from the file name's extension, else its first line."""
+    suffix = PurePath(filename or "").suffix.lower()
+    if suffix in (".csv", ".json"):
+        return suffix[1:]
+    first = next((ln.strip() for ln in text.splitlines() if ln.strip()), "")
     if first.startswith(("[", "{")):
         return "json"
     if first.startswith("#") or "," in first:

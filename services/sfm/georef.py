@@ -668,6 +668,12 @@ def failed_summary(reason: str) -> dict:
     }
 
 
+def read_georef_frame(path: str | Path) -> LocalFrame:
+    """The local ENU frame (origin) of a georef.json that write_georef wrote."""
+    f = json.loads(Path(path).read_text())["frame"]
+    return LocalFrame(float(f["lat0"]), float(f["lon0"]), float(f["h0"]))
+
+
 def write_georef(
     path: str | Path,
     geo: Georef | None,

@@ -8,8 +8,17 @@ The renderer (kernels.py) ray-casts textured boxes, spheres and the ground plane
 independent of any 3DGS code. Numba is only imported when rendering.
 """
 
-from .gt import SceneGT, load_gt, read_covisible, read_depth
+from .gt import SCENE_FILES, SceneGT, load_gt, read_covisible, read_depth, scene_complete
 from .pipeline import main
 from .presets import confs
 
-__all__ = ["SceneGT", "confs", "load_gt", "main", "read_covisible", "read_depth"]
+__all__ = [
+    "SCENE_FILES",
+    "SceneGT",
+    "confs",
+    "load_gt",
+    "main",
+    "read_covisible",
+    "read_depth",
+    "scene_complete",
+]

@@ -131,3 +131,21 @@ def write_covisible(path: Path, rows: list[tuple[str, str, float]]) -> Path:
         for a, g, ov in sorted(rows):
             w.writerow([a, g, f"{ov:.4f}"])
     return path
+
+
+# what a rendered survey folder holds (services.synth.main writes it); benches and the demo reuse a folder
+# that has all of it
+SCENE_FILES = (
+    "images",
+    "pos.csv",
+    "cameras.json",
+    "gt/sparse",
+    "gt/depth.h5",
+    "gt/covisible.csv",
+    "gt/scene.json",
+)
+
+
+def scene_complete(scene: Path) -> bool:
+    """Whether a synthetic survey folder holds everything services.synth.main writes."""
+    return all((Path(scene) / f).exists() for f in SCENE_FILES)
