@@ -41,6 +41,12 @@ class ApiSettings(Settings):
         description="Database connections each API process keeps open (as many more for bursts); status "
         "reads and key lookups run at most this many at once, so they never wait on a new connection",
     )
+    verify_workers: int = Field(
+        1, ge=1, le=16, description="Threads checking uploads completed with wait false (full decode)"
+    )
+    verify_sweep_s: float = Field(
+        30.0, gt=0, description="How often uploads left verifying (an API process died) are checked again"
+    )
     status_cache_s: float = Field(
         0.5,
         ge=0,

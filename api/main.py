@@ -6,6 +6,7 @@ app on given settings with `create_app(settings)` (tests, the embedded service).
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import logging
 from collections.abc import AsyncIterator
@@ -24,6 +25,7 @@ from api.ratelimit import make_rate_limiter
 from api.routes import ROUTERS
 from api.routes.ui import mount_ui
 from api.status_cache import StatusCache
+from api.verify import Verifier
 from shared.config import Settings
 from shared.db.session import make_engine, make_sessionmaker, upgrade_database
 from shared.storage import get_storage
@@ -57,13 +59,26 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     # in flight would wait for (the tail of the status read's latency under load)
     gc.collect()
     gc.freeze()
+    sweeper = asyncio.create_task(_sweep_uploads(app))
     try:
         yield
     finally:
+        sweeper.cancel()
+        app.state.verifier.close()
         close = getattr(app.state.dispatcher, "close", None)
         if callable(close):
             close()
         app.state.engine.dispose()
+
+
+async def _sweep_uploads(app: FastAPI) -> None:
+    """Check again, now and every verify_sweep_s, the uploads left verifying (api/verify.py)."""
+    while True:
+        try:
+            await run_in_threadpool(app.state.verifier.sweep)
+        except Exception:  # the database may be away for a while: the next sweep tries again
+            log.exception("upload verification sweep failed")
+        await asyncio.sleep(app.state.settings.verify_sweep_s)
 
 
 def body_limits(settings: ApiSettings):
@@ -109,6 +124,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.rate_limiter = make_rate_limiter(settings)
     app.state.key_cache = KeyCache(settings.auth_cache_s)
     app.state.status_cache = StatusCache(settings.status_cache_s)
+    app.state.verifier = Verifier(
+        app.state.write_sessionmaker,
+        app.state.sessionmaker,
+        app.state.storage,
+        settings.upload_tmp_dir,
+        settings.verify_workers,
+    )
     app.add_middleware(
         BodyLimitMiddleware, limit_for=body_limits(settings), read_timeout_s=settings.body_read_timeout_s
     )

@@ -100,6 +100,12 @@ class UploadOut(BaseModel):
         description="presigned: PUT parts to the URLs of GET .../parts/{n}; api: PUT them to the API"
     )
     created_at: datetime
+    state: Literal["open", "verifying", "rejected"] = Field(
+        "open",
+        description="open: parts arriving; verifying: assembled, checked in the background; rejected: "
+        "the check failed (error; the object deleted; start the upload again)",
+    )
+    error: str | None = Field(None, description="Why the check rejected it")
 
 
 class PartUrl(BaseModel):
@@ -142,6 +148,11 @@ class UploadComplete(In):
         min_length=1,
         max_length=10_000,
         description="The parts and their ETags; omitted: the parts the storage lists for this upload",
+    )
+    wait: bool = Field(
+        True,
+        description="true: check the image (sha256, full decode) and register it before answering (201); "
+        "false: answer 202 once the parts are assembled, the check running in the background",
     )
 
 

@@ -264,10 +264,28 @@ class MidviewClient:
                 raise ApiError(r.status_code, "PUT", urlsplit(url).path, r.text[:500])
         raise AssertionError("unreachable")
 
-    def complete_upload(self, project_id: str, upload_id: str) -> dict[str, Any]:
-        """Assemble the parts the storage lists; the image row."""
+    def complete_upload(self, project_id: str, upload_id: str, wait: bool = True) -> dict[str, Any]:
+        """Assemble the parts the storage lists: the image row (wait), or with wait false the upload,
+        `verifying` (its check runs on the service; see wait_uploads_checked)."""
         path = f"/projects/{project_id}/uploads/{upload_id}/complete"
-        return self._json("POST", path, ok=(201,), json={})
+        return self._json("POST", path, ok=(201, 202), json={"wait": wait})
+
+    def wait_uploads_checked(self, project_id: str, timeout_s: float = 600.0, poll_s: float = 0.2) -> None:
+        """Wait until the service has checked every upload completed without waiting; ValueError naming
+        those it rejected and why, TimeoutError after timeout_s."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            ups = self.uploads(project_id)
+            rejected = [f"{u['name']}: {u.get('error')}" for u in ups if u.get("state") == "rejected"]
+            if rejected:
+                raise ValueError(
+                    f"{len(rejected)} image(s) failed the service's check: {'; '.join(rejected[:5])}"
+                )
+            if not any(u.get("state") == "verifying" for u in ups):
+                return
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"uploads of project {project_id} still being checked after {timeout_s} s")
+            time.sleep(poll_s)
 
     def abort_upload(self, project_id: str, upload_id: str) -> None:
         self.request("DELETE", f"/projects/{project_id}/uploads/{upload_id}", ok=(204, 404))

@@ -86,10 +86,14 @@ def upload_survey_images(
     pending = {u["name"]: u for u in mv.uploads(project_id)}
     progress.uploads_start(len(files), sum(p.stat().st_size for _, p in files))
     results = []
-    for name, path in files:
-        res = upload_image(mv, project_id, name, path, stored, pending, on_part=progress.part_sent)
+    for name, path in files:  # each image checked by the service while the next one travels
+        res = upload_image(
+            mv, project_id, name, path, stored, pending, on_part=progress.part_sent, wait=False
+        )
         progress.file_done(res, path.stat().st_size)
         results.append(res)
+    progress.step("waiting for the service to check the images")
+    mv.wait_uploads_checked(project_id)
     return results
 
 

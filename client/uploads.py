@@ -20,7 +20,9 @@ PartCallback = Callable[[str, int, int, int], None]  # (image name, part number,
 @dataclass(frozen=True)
 class UploadResult:
     name: str
-    state: str  # "uploaded", "resumed" (an unfinished upload completed) or "present" (stored already)
+    # "uploaded", "resumed" (an unfinished upload completed), "present" (stored already) or "checking"
+    # (sent before, the service still checking it)
+    state: str
     parts_sent: int
     part_count: int
     bytes_sent: int
@@ -100,10 +102,12 @@ def upload_image(
     pending: dict[str, Upload] | None = None,
     on_part: PartCallback | None = None,
     parallel: int = 4,
+    wait: bool = True,
 ) -> UploadResult:
     """Upload `path` as image `name` (SET/FILE), `parallel` parts at a time. `stored` ({name: sha256} of
     the project's images) and `pending` ({name: upload} in progress) save a request per image when the
-    caller lists them once."""
+    caller lists them once. wait false: return once the parts are assembled, the service checking the
+    image meanwhile (MidviewClient.wait_uploads_checked before using the images)."""
     digest, size = sha256_file(path), path.stat().st_size
     if stored is None:
         stored = {im["name"]: im["sha256"] for im in mv.images(project_id)}
@@ -111,6 +115,10 @@ def upload_image(
         return _present(name, stored[name], digest)
     if pending is None:
         pending = {u["name"]: u for u in mv.uploads(project_id)}
+    if pending.get(name, {}).get("state") == "verifying":  # sent before: being checked
+        return UploadResult(name, "checking", 0, 0, 0)
+    if pending.get(name, {}).get("state") == "rejected":  # its check failed: upload it again
+        pending = {k: v for k, v in pending.items() if k != name}
     try:
         upload, todo, resumed = _start_or_resume(mv, project_id, name, size, digest, pending.get(name))
     except ApiError as e:
@@ -122,7 +130,7 @@ def upload_image(
         upload, todo, resumed = _start_or_resume(mv, project_id, name, size, digest, again.get(name))
     sent = _send_parts(mv, project_id, upload, path, todo, parallel, on_part)
     try:
-        mv.complete_upload(project_id, upload["id"])
+        mv.complete_upload(project_id, upload["id"], wait=wait)
     except ApiError as e:
         if e.status != 409:
             raise

@@ -243,3 +243,92 @@ def test_concurrent_starts_of_one_name(api_env, make_jpeg, monkeypatch) -> None:
     assert len(created) == 2 and len(aborted) == 1  # the loser's storage upload was aborted
     with pytest.raises(StorageKeyError):
         storage.list_parts(image_key_for_name(t.id, pid, "aerial/RACE.jpg"), aborted[0])
+
+
+def _wait_checked(env, tenant, pid: str, timeout_s: float = 30.0) -> list[dict]:
+    """The project's uploads once none is verifying."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        ups = env.client.get(f"/projects/{pid}/uploads", headers=tenant.headers).json()
+        if not any(u["state"] == "verifying" for u in ups) or time.monotonic() > deadline:
+            return ups
+        time.sleep(0.05)
+
+
+def test_completion_without_waiting_checks_in_the_background(api_env, make_jpeg) -> None:
+    """wait false: 202 once assembled; the check registers the image, or leaves the upload rejected with
+    the reason (its object deleted) and the project's jobs refused until it is uploaded again; a job
+    cannot start while an upload is being checked; an upload left verifying (a process died) is taken
+    again by the sweep."""
+    from datetime import timedelta
+
+    from conftest import jobbable_project
+
+    from shared.db.models import Upload, utcnow
+
+    c, t = api_env.client, api_env.tenant()
+    pid = jobbable_project(c, t.headers, make_jpeg)  # 3 aerial and 1 ground image with POS
+    good = make_jpeg(seed=5, width=320, height=240)
+    n = len(good)
+    garbled = good[: n // 2] + bytes(min(2000, n // 3)) + good[n // 2 + min(2000, n // 3) :]
+
+    def send(name: str, data: bytes) -> dict:
+        up = c.post(
+            f"/projects/{pid}/uploads", json={"name": name, "size": len(data)}, headers=t.headers
+        ).json()
+        parts = _send_parts(api_env, t, pid, up, data)
+        r = c.post(
+            f"/projects/{pid}/uploads/{up['id']}/complete",
+            json={"parts": parts, "wait": False},
+            headers=t.headers,
+        )
+        assert r.status_code == 202, r.text
+        assert r.json()["state"] == "verifying" and r.json()["id"] == up["id"]
+        return up
+
+    send("aerial/A9.jpg", good)
+    bad = send("aerial/BAD.jpg", garbled)
+    ups = _wait_checked(api_env, t, pid)
+    assert [(u["name"], u["state"]) for u in ups] == [("aerial/BAD.jpg", "rejected")]
+    assert "corrupt JPEG" in ups[0]["error"]
+    assert not api_env.storage.exists(image_key_for_name(t.id, pid, "aerial/BAD.jpg"))
+    image = c.get(f"/projects/{pid}/images/aerial/A9.jpg", headers=t.headers).json()
+    assert image["sha256"] == hashlib.sha256(good).hexdigest() and (image["width"], image["height"]) == (
+        320,
+        240,
+    )
+    api_env.dispatcher.calls.clear()
+    r = c.post(f"/projects/{pid}/jobs", json={}, headers=t.headers)
+    assert (
+        r.status_code == 409
+        and "aerial/BAD.jpg" in r.json()["detail"]
+        and "corrupt JPEG" in r.json()["detail"]
+    )
+    # uploaded again (the new start replaces the rejected upload), with the job's POS rows
+    send("aerial/BAD.jpg", make_jpeg(seed=6))
+    assert _wait_checked(api_env, t, pid) == []
+    assert c.get(f"/projects/{pid}/uploads/{bad['id']}", headers=t.headers).status_code == 404
+
+    # an upload being checked holds the jobs back (409 with Retry-After)
+    up = c.post(
+        f"/projects/{pid}/uploads", json={"name": "ground/G9.jpg", "size": 10}, headers=t.headers
+    ).json()
+    with api_env.session() as s:
+        row = s.get(Upload, up["id"])
+        row.state, row.verify_started_at = "verifying", utcnow() - timedelta(hours=1)
+        s.commit()
+    r = c.post(f"/projects/{pid}/jobs", json={}, headers=t.headers)
+    assert (
+        r.status_code == 409
+        and "still being checked" in r.json()["detail"]
+        and r.headers["retry-after"] == "2"
+    )
+    # ... until the sweep takes it again (its claim is an hour old): nothing was assembled, so rejected
+    verifier = api_env.app.state.verifier
+    assert verifier.sweep() == [up["id"]]
+    assert [(u["name"], u["state"]) for u in _wait_checked(api_env, t, pid)] == [
+        ("ground/G9.jpg", "rejected")
+    ]
+    assert verifier.sweep() == []  # rejected: not taken again

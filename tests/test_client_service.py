@@ -120,6 +120,10 @@ def submitted(service, survey, tmp_path_factory):
         first.wait(30)
     assert first.returncode == -signal.SIGKILL, "".join(lines)
     pid = service.http.get("/projects", params={"name": project}).json()[0]["id"]
+    deadline = time.monotonic() + 60  # the images sent before the kill are checked by the service
+    while any(u["state"] == "verifying" for u in service.http.get(f"/projects/{pid}/uploads").json()):
+        assert time.monotonic() < deadline, "uploads still verifying after 60 s"
+        time.sleep(0.1)
     uploads = service.http.get(f"/projects/{pid}/uploads").json()
     parts = [service.http.get(f"/projects/{pid}/uploads/{u['id']}/parts").json() for u in uploads]
     stored = service.http.get(f"/projects/{pid}/images").json()

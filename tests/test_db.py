@@ -41,7 +41,7 @@ from shared.db.session import (
 )
 
 REPO = Path(__file__).resolve().parents[1]
-HEAD = "0005"
+HEAD = "0006"
 TABLES = {
     "tenants",
     "api_keys",

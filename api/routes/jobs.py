@@ -85,7 +85,23 @@ def _names(items: list[str], limit: int = 10) -> str:
 def _check_inputs(session: Session, storage: Storage, project: Project, options: JobOptions) -> None:
     """409 unless the project has what the selected stages need: at least MIN_AERIAL aerial images,
     ground images where the stages need them, a POS row for every image, and intrinsics for each set
-    (its cameras.json entry, else the EXIF focal length of every image of the set)."""
+    (its cameras.json entry, else the EXIF focal length of every image of the set); and none of its
+    uploads still being checked (with Retry-After) or rejected by the check."""
+    verifying, rejected = crud.unfinished_checks(session, project.id)
+    if verifying:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"{len(verifying)} uploaded image(s) are still being checked ({_names(verifying)}): retry "
+            "in a few seconds",
+            headers={"Retry-After": "2"},
+        )
+    if rejected:
+        reasons = [f"{n}: {why}" for n, why in rejected]
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"{len(rejected)} uploaded image(s) failed their check ({'; '.join(reasons[:5])}): upload them "
+            "again or delete those uploads",
+        )
     sets = ["aerial", "ground"] if options.needs_ground() else ["aerial"]
     images = {s: crud.list_images(session, project.id, s) for s in sets}
     if not images["aerial"]:

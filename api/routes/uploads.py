@@ -10,7 +10,8 @@
    parts the storage holds (number, size, ETag) and those missing;
 4. `POST .../uploads/{u}/complete` {parts: [{part_number, etag}]} (or {} to take the listed parts) -> the
    object is assembled, checked (size, sha256 when given, full decode) and registered as an image; a
-   failing check deletes it (422);
+   failing check deletes it (422). With `wait: false`: 202 once assembled, the check in the background
+   (api/verify.py; the upload `verifying`, then gone into the images or `rejected` with the reason);
 5. `DELETE .../uploads/{u}` aborts.
 """
 
@@ -29,7 +30,7 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from api.deps import ProjectDep, SessionDep, SettingsDep, StorageDep
-from api.ingest import CONTENT_TYPES, check_image_name, decode_check, exif_meta, hash_stream
+from api.ingest import CONTENT_TYPES, check_image_name
 from api.schemas import (
     ImageOut,
     PartOut,
@@ -41,10 +42,10 @@ from api.schemas import (
     UploadOut,
     UploadParts,
 )
+from api.verify import UploadRejected, finish_upload
 from shared.db import crud
 from shared.db.crud import ConflictError
-from shared.db.models import Project, Upload
-from shared.images import ImageError
+from shared.db.models import Project, Upload, utcnow
 from shared.storage import Storage, StorageError, StorageKeyError
 from shared.storage.base import MAX_PART_NUMBER
 from shared.storage.keys import image_key_for_name
@@ -70,7 +71,10 @@ def _load(session: Session, project: Project, upload_id: str) -> Upload:
 
 
 def _out(upload: Upload, storage: Storage) -> UploadOut:
-    presigned = storage.presigned_part_url(upload.storage_key, upload.storage_upload_id, 1) is not None
+    try:
+        presigned = storage.presigned_part_url(upload.storage_key, upload.storage_upload_id, 1) is not None
+    except StorageKeyError:  # assembled (verifying, rejected): the storage forgot the multipart upload
+        presigned = False
     return UploadOut(
         id=upload.id,
         name=upload.name,
@@ -80,6 +84,8 @@ def _out(upload: Upload, storage: Storage) -> UploadOut:
         part_count=upload.part_count,
         parts_via="presigned" if presigned else "api",
         created_at=upload.created_at,
+        state=upload.state,
+        error=upload.error,
     )
 
 
@@ -131,6 +137,7 @@ def create_upload(
             {"message": f"image {body.name!r} already exists", "sha256": existing.sha256},
         )
     busy = f"an upload of {body.name!r} is already in progress"
+    crud.drop_rejected_upload(session, project.id, body.name)  # a new start replaces a failed check
     if crud.uploads_in_progress(session, project.id, [body.name]):
         raise HTTPException(status.HTTP_409_CONFLICT, busy)
     key = image_key_for_name(project.tenant_id, project.id, body.name)
@@ -277,21 +284,6 @@ async def upload_part(
     return PartOut(part_number=part_number, etag=etag)
 
 
-def _verify(storage: Storage, upload: Upload, tmp: Path) -> tuple[str, int, int, int, dict]:
-    """(sha256, size, width, height, exif_meta) of the assembled object; ValueError/ImageError when it
-    fails."""
-    filename = upload.name.split("/", 1)[1]
-    local = tmp / "image"
-    with storage.open_read(upload.storage_key) as body:
-        sha256, size = hash_stream(body, local)
-    if size != upload.size_bytes:
-        raise ValueError(f"{filename}: {size} bytes assembled, {upload.size_bytes} announced")
-    if upload.sha256 is not None and sha256 != upload.sha256:
-        raise ValueError(f"{filename}: sha256 {sha256} does not match the announced {upload.sha256}")
-    width, height = decode_check(local, filename)
-    return sha256, size, width, height, exif_meta(local)
-
-
 def _parts_to_complete(storage: Storage, upload: Upload, body: UploadComplete) -> list[tuple[int, str]]:
     """[(part number, ETag)] from the request, or else from the storage's list; 422 unless every part
     1..part_count is there once."""
@@ -315,22 +307,29 @@ def _parts_to_complete(storage: Storage, upload: Upload, body: UploadComplete) -
     status_code=status.HTTP_201_CREATED,
     response_model=UploadedImage,
     responses={
+        202: {"model": UploadOut, "description": "wait false: assembled; checked in the background"},
         409: {"description": "The name was taken meanwhile"},
         422: {"description": "Parts missing or wrong, or the image failed its checks (deleted)"},
     },
 )
 def complete_upload(
+    request: Request,
     body: UploadComplete,
     project: ProjectDep,
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
     upload_id: UploadId,
-) -> UploadedImage:
+) -> UploadedImage | Response:
     """Assemble the parts (those given with their ETags, or without `parts` those the storage lists),
-    check the image and register it; the upload is then finished."""
+    check the image and register it; the upload is then finished. With `wait: false`, answer 202 once
+    the parts are assembled: the check runs in the background (api/verify.py) and GET .../uploads/{u}
+    shows the upload `verifying`, then gone (GET .../images has the image) or `rejected` with the reason."""
     upload = _load(session, project, upload_id)
+    if upload.state != "open":
+        raise HTTPException(status.HTTP_409_CONFLICT, f"upload {upload_id} is {upload.state}, not open")
     parts = _parts_to_complete(storage, upload, body)
+    before = _out(upload, storage)  # while the storage knows the multipart upload (parts_via)
     if crud.get_image(session, project.id, upload.name) is not None:
         _drop(session, storage, upload)
         raise HTTPException(
@@ -342,36 +341,21 @@ def complete_upload(
         raise HTTPException(
             status.HTTP_422_UNPROCESSABLE_CONTENT, f"cannot assemble the parts: {e}"
         ) from None
-    with tempfile.TemporaryDirectory(prefix="midview-complete-", dir=settings.upload_tmp_dir) as tmp:
-        try:
-            sha256, size, width, height, meta = _verify(storage, upload, Path(tmp))
-        except (ValueError, ImageError) as e:
-            storage.delete(upload.storage_key)
-            _drop(session, storage, upload, abort=False)
-            raise HTTPException(
-                status.HTTP_422_UNPROCESSABLE_CONTENT,
-                {"message": "upload rejected and deleted", "errors": [str(e)]},
-            ) from None
-    name, uid = upload.name, upload.id
-    try:  # the image row and the end of the upload in one transaction
-        row, created = crud.add_image(
-            session,
-            project.id,
-            name,
-            sha256=sha256,
-            size_bytes=size,
-            storage_key=upload.storage_key,
-            width=width,
-            height=height,
-            metadata={"upload_id": uid, **meta},
-        )
-        session.delete(upload)
+    if not body.wait:
+        upload.state, upload.verify_started_at = "verifying", utcnow()
         session.commit()
-    except Exception:
-        session.rollback()
-        log.error("upload %s: %s could not be registered after assembly", uid, name)
-        raise
-    log.info("project %s: upload %s completed as %s (%d bytes)", project.id, uid, name, size)
+        request.app.state.verifier.submit(upload.id)
+        out = before.model_copy(update={"state": "verifying"}).model_dump_json()
+        return Response(out, status_code=status.HTTP_202_ACCEPTED, media_type="application/json")
+    try:
+        row, created = finish_upload(session, storage, upload, settings.upload_tmp_dir)
+    except UploadRejected as e:
+        storage.delete(upload.storage_key)
+        _drop(session, storage, upload, abort=False)
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            {"message": "upload rejected and deleted", "errors": [str(e)]},
+        ) from None
     return UploadedImage(**ImageOut.model_validate(row).model_dump(), created=created)
 
 

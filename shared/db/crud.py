@@ -359,12 +359,35 @@ def list_uploads(session: Session, project_id: str) -> list[Upload]:
 
 
 def uploads_in_progress(session: Session, project_id: str, names: Iterable[str]) -> list[str]:
-    """Those of names that an unfinished multipart upload is writing, sorted."""
+    """Those of names that an unfinished multipart upload is writing (open or verifying), sorted."""
     wanted = sorted(set(names))
     if not wanted:
         return []
-    stmt = sa.select(Upload.name).where(Upload.project_id == str(project_id), Upload.name.in_(wanted))
+    stmt = sa.select(Upload.name).where(
+        Upload.project_id == str(project_id), Upload.name.in_(wanted), Upload.state != "rejected"
+    )
     return sorted(session.scalars(stmt))
+
+
+def drop_rejected_upload(session: Session, project_id: str, name: str) -> None:
+    """Delete the rejected upload of name, if any (a new upload of the name replaces it)."""
+    session.execute(
+        sa.delete(Upload).where(
+            Upload.project_id == str(project_id), Upload.name == name, Upload.state == "rejected"
+        )
+    )
+
+
+def unfinished_checks(session: Session, project_id: str) -> tuple[list[str], list[tuple[str, str]]]:
+    """(names of uploads still being checked, [(name, reason)] of uploads whose check failed)."""
+    rows = session.execute(
+        sa.select(Upload.name, Upload.state, Upload.error).where(
+            Upload.project_id == str(project_id), Upload.state.in_(["verifying", "rejected"])
+        )
+    ).all()
+    verifying = sorted(n for n, st, _ in rows if st == "verifying")
+    rejected = sorted((n, e or "") for n, st, e in rows if st == "rejected")
+    return verifying, rejected
 
 
 # jobs

@@ -233,6 +233,10 @@ class Upload(Base):
     part_size: Mapped[int] = mapped_column(sa.BigInteger)
     part_count: Mapped[int]
     created_at: Mapped[datetime] = _created()
+    # open (parts arriving), verifying (assembled, checked in the background), rejected (error says why)
+    state: Mapped[str] = mapped_column(sa.String(16), default="open", server_default="open")
+    error: Mapped[str | None] = mapped_column(sa.Text)
+    verify_started_at: Mapped[datetime | None]  # a verifier's claim (api/verify.py)
 
     project: Mapped[Project] = relationship(back_populates="uploads")
 
