@@ -149,6 +149,12 @@ class UploadComplete(In):
         max_length=10_000,
         description="The parts and their ETags; omitted: the parts the storage lists for this upload",
     )
+    sha256: str | None = Field(
+        None,
+        pattern=r"^[0-9a-fA-F]{64}$",
+        description="The file's sha256, when the start did not give it (a client that hashed the file "
+        "while its parts travelled); checked like the start's",
+    )
     wait: bool = Field(
         True,
         description="true: check the image (sha256, full decode) and register it before answering (201); "

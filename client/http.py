@@ -264,11 +264,24 @@ class MidviewClient:
                 raise ApiError(r.status_code, "PUT", urlsplit(url).path, r.text[:500])
         raise AssertionError("unreachable")
 
-    def complete_upload(self, project_id: str, upload_id: str, wait: bool = True) -> dict[str, Any]:
-        """Assemble the parts the storage lists: the image row (wait), or with wait false the upload,
-        `verifying` (its check runs on the service; see wait_uploads_checked)."""
+    def complete_upload(
+        self,
+        project_id: str,
+        upload_id: str,
+        wait: bool = True,
+        parts: list[tuple[int, str]] | None = None,
+        sha256: str | None = None,
+    ) -> dict[str, Any]:
+        """Assemble the parts (those given with their ETags, else those the storage lists): the image
+        row (wait), or with wait false the upload, `verifying` (its check runs on the service; see
+        wait_uploads_checked). sha256: the file's, when the start did not give it."""
         path = f"/projects/{project_id}/uploads/{upload_id}/complete"
-        return self._json("POST", path, ok=(201, 202), json={"wait": wait})
+        body: dict[str, Any] = {"wait": wait}
+        if parts is not None:
+            body["parts"] = [{"part_number": n, "etag": etag} for n, etag in parts]
+        if sha256 is not None:
+            body["sha256"] = sha256
+        return self._json("POST", path, ok=(201, 202), json=body)
 
     def wait_uploads_checked(self, project_id: str, timeout_s: float = 600.0, poll_s: float = 0.2) -> None:
         """Wait until the service has checked every upload completed without waiting; ValueError naming

@@ -46,7 +46,7 @@ def _present(name: str, stored_sha256: str, digest: str) -> UploadResult:
 
 
 def _start_or_resume(
-    mv: MidviewClient, project_id: str, name: str, size: int, digest: str, pending: Upload | None
+    mv: MidviewClient, project_id: str, name: str, size: int, digest: str | None, pending: Upload | None
 ) -> tuple[Upload, list[int], bool]:
     """(upload, part numbers to send, resumed): the unfinished upload of the same file, else a new one."""
     if pending is not None and pending["size"] == size and pending.get("sha256") in (None, digest):
@@ -70,27 +70,30 @@ def _send_parts(
     todo: list[int],
     parallel: int,
     on_part: PartCallback | None,
-) -> int:
-    """PUT the parts `todo` of the file, `parallel` at a time (each read where it lies); bytes sent."""
+) -> tuple[int, list[tuple[int, str]]]:
+    """PUT the parts `todo` of the file, `parallel` at a time (each read where it lies); (bytes sent,
+    [(part number, ETag)] in part order)."""
     size = upload["part_size"]
     lock = threading.Lock()
 
-    def send(fd: int, n: int) -> int:
+    def send(fd: int, n: int) -> tuple[int, int, str]:
         data = os.pread(fd, size, (n - 1) * size)
-        mv.put_part(project_id, upload["id"], n, data)
+        etag = mv.put_part(project_id, upload["id"], n, data)
         if on_part is not None:
             with lock:
                 on_part(upload["name"], n, upload["part_count"], len(data))
-        return len(data)
+        return n, len(data), etag
 
     fd = os.open(path, os.O_RDONLY)
     try:
         if parallel <= 1 or len(todo) <= 1:
-            return sum(send(fd, n) for n in todo)
-        with ThreadPoolExecutor(min(parallel, len(todo))) as pool:
-            return sum(pool.map(lambda n: send(fd, n), todo))
+            done = [send(fd, n) for n in todo]
+        else:
+            with ThreadPoolExecutor(min(parallel, len(todo))) as pool:
+                done = list(pool.map(lambda n: send(fd, n), todo))
     finally:
         os.close(fd)
+    return sum(b for _, b, _ in done), sorted((n, etag) for n, _, etag in done)
 
 
 def upload_image(
@@ -108,29 +111,44 @@ def upload_image(
     the project's images) and `pending` ({name: upload} in progress) save a request per image when the
     caller lists them once. wait false: return once the parts are assembled, the service checking the
     image meanwhile (MidviewClient.wait_uploads_checked before using the images)."""
-    digest, size = sha256_file(path), path.stat().st_size
+    size = path.stat().st_size
     if stored is None:
         stored = {im["name"]: im["sha256"] for im in mv.images(project_id)}
     if name in stored:
-        return _present(name, stored[name], digest)
+        return _present(name, stored[name], sha256_file(path))
     if pending is None:
         pending = {u["name"]: u for u in mv.uploads(project_id)}
     if pending.get(name, {}).get("state") == "verifying":  # sent before: being checked
         return UploadResult(name, "checking", 0, 0, 0)
     if pending.get(name, {}).get("state") == "rejected":  # its check failed: upload it again
         pending = {k: v for k, v in pending.items() if k != name}
+    with ThreadPoolExecutor(1) as hasher:
+        # a new upload: the file is hashed while its parts travel and the digest sent at completion;
+        # resuming one: the digest first (is the unfinished upload this file's?)
+        fresh = name not in pending
+        hashing = hasher.submit(sha256_file, path)
+        digest = None if fresh else hashing.result()
+        try:
+            upload, todo, resumed = _start_or_resume(mv, project_id, name, size, digest, pending.get(name))
+        except ApiError as e:
+            if e.status != 409:
+                raise
+            if isinstance(e.detail, dict) and e.detail.get("sha256"):  # stored meanwhile
+                return _present(name, e.detail["sha256"], hashing.result())
+            again = {u["name"]: u for u in mv.uploads(project_id)}  # started meanwhile: resume that one
+            digest = hashing.result()
+            upload, todo, resumed = _start_or_resume(mv, project_id, name, size, digest, again.get(name))
+        sent, etags = _send_parts(mv, project_id, upload, path, todo, parallel, on_part)
+        digest = hashing.result()
+    every_part = len(etags) == upload["part_count"]  # else the storage lists them (resumed)
     try:
-        upload, todo, resumed = _start_or_resume(mv, project_id, name, size, digest, pending.get(name))
-    except ApiError as e:
-        if e.status != 409:
-            raise
-        if isinstance(e.detail, dict) and e.detail.get("sha256"):  # stored meanwhile
-            return _present(name, e.detail["sha256"], digest)
-        again = {u["name"]: u for u in mv.uploads(project_id)}  # started meanwhile: resume that one
-        upload, todo, resumed = _start_or_resume(mv, project_id, name, size, digest, again.get(name))
-    sent = _send_parts(mv, project_id, upload, path, todo, parallel, on_part)
-    try:
-        mv.complete_upload(project_id, upload["id"], wait=wait)
+        mv.complete_upload(
+            project_id,
+            upload["id"],
+            wait=wait,
+            parts=etags if every_part else None,
+            sha256=None if upload.get("sha256") else digest,
+        )
     except ApiError as e:
         if e.status != 409:
             raise

@@ -328,6 +328,13 @@ def complete_upload(
     upload = _load(session, project, upload_id)
     if upload.state != "open":
         raise HTTPException(status.HTTP_409_CONFLICT, f"upload {upload_id} is {upload.state}, not open")
+    if body.sha256 is not None:
+        if upload.sha256 is not None and upload.sha256 != body.sha256.lower():
+            raise HTTPException(
+                status.HTTP_422_UNPROCESSABLE_CONTENT,
+                f"sha256 {body.sha256} differs from the {upload.sha256} announced at the start",
+            )
+        upload.sha256 = body.sha256.lower()
     parts = _parts_to_complete(storage, upload, body)
     before = _out(upload, storage)  # while the storage knows the multipart upload (parts_via)
     if crud.get_image(session, project.id, upload.name) is not None:
