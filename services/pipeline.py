@@ -312,13 +312,19 @@ def fingerprint(conf: Any, inputs: list[Path], root: Path | None = None) -> str:
 
 @dataclass
 class StageDef:
-    """One stage: run(job, report) -> summary dict; its conf, inputs and outputs derived from the job."""
+    """One stage: run(job, report) -> summary dict; its conf, inputs and outputs derived from the job;
+    the folders of the job it owns (`dirs`, the first its own), the files it writes outside them
+    (`extra`), and its user-facing outputs (`artifacts`: (path or folder/* or folder/*.ext relative to
+    the job folder, kind)), which the workers sync, record and list from here."""
 
     name: str
     run: Callable[[Job, Callable[[float, str], None]], dict]
     conf: Callable[[Job], Any]
     inputs: Callable[[Job], list[Path]]
     outputs: Callable[[Job], list[Path]]
+    dirs: tuple[str, ...] = ()
+    extra: tuple[str, ...] = ()
+    artifacts: tuple[tuple[str, str], ...] = ()
 
     @property
     def queue(self) -> str:
@@ -640,6 +646,15 @@ REGISTRY: dict[str, StageDef] = {
             j.dir("sfm") / "database.db",
             j.cameras,
         ],
+        dirs=("sfm",),
+        extra=("cameras.json",),
+        artifacts=(
+            ("sfm/report.json", "report"),
+            ("sfm/georef.json", "georef"),
+            ("sfm/cameras.geojson", "geojson"),
+            ("sfm/sparse/*", "model"),
+            ("cameras.json", "cameras"),
+        ),
     ),
     "train_splat": StageDef(
         "train_splat",
@@ -655,6 +670,8 @@ REGISTRY: dict[str, StageDef] = {
         lambda j: [
             j.dir("splat") / ("skipped.json" if j.settings["renderer"] == "gt" else "point_cloud.ply")
         ],
+        dirs=("splat",),
+        artifacts=(("splat/point_cloud.ply", "splat"), ("splat/metrics.json", "metrics")),
     ),
     "plan_views": StageDef(
         "plan_views",
@@ -668,6 +685,8 @@ REGISTRY: dict[str, StageDef] = {
             *j.renderer_inputs(),
         ],
         lambda j: [j.dir("plan") / "views.json"],
+        dirs=("plan",),
+        artifacts=(("plan/views.json", "views"),),
     ),
     "render_views": StageDef(
         "render_views",
@@ -679,6 +698,8 @@ REGISTRY: dict[str, StageDef] = {
         },
         lambda j: [j.dir("plan") / "views.json", *j.renderer_inputs()],
         lambda j: [j.dir("views") / "views.json"],
+        dirs=("views",),
+        artifacts=(("views/views.json", "views"), ("views/*.png", "view")),
     ),
     "match_views": StageDef(
         "match_views",
@@ -686,6 +707,7 @@ REGISTRY: dict[str, StageDef] = {
         lambda j: {"matching": j.match_conf()},
         lambda j: [j.dir("views") / "views.json", _images(j, "aerial"), _images(j, "ground")],
         lambda j: [j.dir("matches"), j.features_path],
+        dirs=("matches", "features"),
     ),
     "reduce": StageDef(
         "reduce",
@@ -702,6 +724,13 @@ REGISTRY: dict[str, StageDef] = {
         lambda j: [
             j.dir("transfer") / f for f in ("matches.h5", "database.db", "ground_poses.json", "report.json")
         ],
+        dirs=("transfer",),
+        artifacts=(
+            ("transfer/matches.h5", "matches"),  # the API's /jobs/{id}/pairs reads the newest "matches"
+            ("transfer/ground_poses.json", "poses"),
+            ("transfer/report.json", "report"),
+            ("transfer/database.db", "colmap_database"),
+        ),
     ),
     "combined_sfm": StageDef(
         "combined_sfm",
@@ -718,6 +747,14 @@ REGISTRY: dict[str, StageDef] = {
             j.cameras,
         ],
         lambda j: [j.dir("combined") / "sparse", j.dir("combined") / "report.json"],
+        dirs=("combined",),
+        extra=("features",),  # the combined SfM extends the matching feature cache
+        artifacts=(
+            ("combined/report.json", "report"),
+            ("combined/sparse/*", "model"),
+            ("combined/georef.json", "georef"),
+            ("combined/gis/*", "gis"),
+        ),
     ),
     "splat_all": StageDef(
         "splat_all",
@@ -725,6 +762,8 @@ REGISTRY: dict[str, StageDef] = {
         lambda j: {"splat": j.splat_conf(), "backend": j.settings["splat_backend"]},
         lambda j: [j.dir("combined") / "sparse", _images(j, "aerial"), _images(j, "ground")],
         lambda j: [j.dir("splat_all") / "point_cloud.ply", j.dir("splat_all") / "metrics.json"],
+        dirs=("splat_all",),
+        artifacts=(("splat_all/point_cloud.ply", "splat"), ("splat_all/metrics.json", "metrics")),
     ),
 }
 assert tuple(REGISTRY) == STAGES, "the registry must follow shared.job_options.STAGES"

@@ -49,51 +49,6 @@ log = logging.getLogger("midview.workers")
 
 MAX_ERROR_CHARS = 4000
 
-# folders (relative to the job folder) a stage owns: pushed after it, and mirrored (objects of files
-# that no longer exist locally are deleted, e.g. the matches of views no longer planned)
-STAGE_DIRS: dict[str, list[str]] = {
-    "aerial_sfm": ["sfm"],
-    "train_splat": ["splat"],
-    "plan_views": ["plan"],
-    "render_views": ["views"],
-    "match_views": ["matches", "features"],
-    "reduce": ["transfer"],
-    "combined_sfm": ["combined"],
-    "splat_all": ["splat_all"],
-}
-# files a stage writes outside its folder (pushed, never mirrored)
-STAGE_EXTRA: dict[str, list[str]] = {
-    "aerial_sfm": ["cameras.json"],
-    "combined_sfm": ["features"],  # the combined SfM extends the matching feature cache
-}
-# user-facing outputs recorded as artifacts: (path, folder/* or folder/*.ext relative to the job folder, kind)
-ARTIFACTS: dict[str, list[tuple[str, str]]] = {
-    "aerial_sfm": [
-        ("sfm/report.json", "report"),
-        ("sfm/georef.json", "georef"),
-        ("sfm/cameras.geojson", "geojson"),
-        ("sfm/sparse/*", "model"),
-        ("cameras.json", "cameras"),
-    ],
-    "train_splat": [("splat/point_cloud.ply", "splat"), ("splat/metrics.json", "metrics")],
-    "plan_views": [("plan/views.json", "views")],
-    "render_views": [("views/views.json", "views"), ("views/*.png", "view")],
-    "match_views": [],
-    "reduce": [
-        ("transfer/matches.h5", "matches"),  # the API's /jobs/{id}/pairs reads the newest "matches"
-        ("transfer/ground_poses.json", "poses"),
-        ("transfer/report.json", "report"),
-        ("transfer/database.db", "colmap_database"),
-    ],
-    "combined_sfm": [
-        ("combined/report.json", "report"),
-        ("combined/sparse/*", "model"),
-        ("combined/georef.json", "georef"),
-        ("combined/gis/*", "gis"),
-    ],
-    "splat_all": [("splat_all/point_cloud.ply", "splat"), ("splat_all/metrics.json", "metrics")],
-}
-
 
 class JobStopped(Exception):
     """The job was cancelled, finished or deleted meanwhile: stop without recording a failure."""
@@ -366,8 +321,9 @@ def _push(ctx: Context, info: JobInfo, job: Any, paths: list, unit: str, mirror:
 def _push_stage(ctx: Context, info: JobInfo, job: Any, stage: str) -> None:
     from services import pipeline
 
-    owned = STAGE_DIRS.get(stage, [])
-    paths = [*owned, *STAGE_EXTRA.get(stage, []), *pipeline.REGISTRY[stage].outputs(job)]
+    sd = pipeline.REGISTRY[stage]  # its folders are mirrored (objects of files gone locally deleted)
+    owned = list(sd.dirs)
+    paths = [*owned, *sd.extra, *sd.outputs(job)]
     paths.append(pipeline.marker_path(job, stage))
     mirror = [d for d in owned if (job.root / d).is_dir()]
     _push(ctx, info, job, paths, stage, mirror)
@@ -383,8 +339,11 @@ def _sha256(path: Path) -> str:
 
 def artifact_files(root: Path, stage: str) -> list[tuple[str, str, Path]]:
     """(name relative to the job folder, kind, path) of the artifacts a finished stage left in `root`."""
+    from services import pipeline
+
     out = []
-    for pattern, kind in ARTIFACTS.get(stage, []):
+    sd = pipeline.REGISTRY.get(stage)
+    for pattern, kind in sd.artifacts if sd is not None else ():
         if "*" in pattern:  # folder/* or folder/*.png: the files of one folder
             files = sorted(p for p in root.glob(pattern) if p.is_file())
         else:
@@ -456,7 +415,11 @@ def execute_stage(
 
 
 def stage_dir(stage: str) -> str:
-    return STAGE_DIRS.get(stage, [stage])[0]
+    """The folder a stage owns (services.pipeline.REGISTRY), its name for a stage without one."""
+    from services import pipeline
+
+    sd = pipeline.REGISTRY.get(stage)
+    return sd.dirs[0] if sd is not None and sd.dirs else stage
 
 
 def prepare_match_views(
