@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import anyio
@@ -48,10 +48,16 @@ def format_event(event: str, data: dict[str, Any], event_id: int | None = None) 
 
 
 async def job_events(
-    make_session: sessionmaker[Session], job_id: str, poll_s: float = 0.5, heartbeat_s: float = 15.0
+    make_session: sessionmaker[Session],
+    job_id: str,
+    poll_s: float = 0.5,
+    heartbeat_s: float = 15.0,
+    on_change: Callable[[], None] | None = None,
 ) -> AsyncIterator[str]:
     """`progress` events (the job snapshot) whenever the row changes, `end` once it is final, `error` if
-    the job disappears; keep-alive comments while nothing changes. The first event is sent at once."""
+    the job disappears; keep-alive comments while nothing changes. The first event is sent at once.
+    on_change runs before each event that tells of a change (the app drops its cached status read, so
+    that a client that GETs the job after an event gets at least what the event told)."""
     last: dict[str, Any] | None = None
     n = 0
     last_sent = time.monotonic()
@@ -62,6 +68,8 @@ async def job_events(
             yield format_event("error", {"detail": f"job {job_id} not found"})
             return
         if snap != last:
+            if on_change is not None and last is not None:
+                on_change()
             n += 1
             yield format_event("progress", snap, n)
             last, last_sent = snap, time.monotonic()

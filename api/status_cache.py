@@ -33,6 +33,7 @@ class StatusCache:
         self.ttl_s, self.max_size, self.clock = ttl_s, max_size, clock
         self._items: OrderedDict[str, tuple[float, Entry | None]] = OrderedDict()
         self._pending: dict[str, asyncio.Future[Entry | None]] = {}
+        self._generation: dict[str, int] = {}  # bumped by forget()
         self.hits = self.misses = 0
 
     async def get(
@@ -70,11 +71,16 @@ class StatusCache:
     ) -> asyncio.Future[Entry | None]:
         """Run load() as a task that stores its entry (or drops the job's: None) when done."""
 
+        generation = self._generation.get(job_id, 0)
+
         async def run() -> Entry | None:
             try:
                 entry = await load()
             finally:
-                self._pending.pop(job_id, None)
+                if self._pending.get(job_id) is task:
+                    del self._pending[job_id]
+            if self._generation.get(job_id, 0) != generation:
+                return entry  # forgotten meanwhile: this read may predate what made it forget
             if entry is None:  # unknown ids are not remembered: a flood of them cannot fill the cache
                 self._items.pop(job_id, None)
                 return None
@@ -90,4 +96,9 @@ class StatusCache:
         return task
 
     def forget(self, job_id: str) -> None:
+        """Drop the job's entry; a read already under way will not store its (maybe older) answer."""
         self._items.pop(job_id, None)
+        self._pending.pop(job_id, None)
+        self._generation[job_id] = self._generation.get(job_id, 0) + 1
+        if len(self._generation) > 4 * self.max_size:
+            self._generation.clear()  # bounded; a cleared count only costs a read already under way

@@ -17,9 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import tempfile
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -91,13 +89,6 @@ def finish_upload(
     return row, created
 
 
-def _background_priority(niceness: int = 10) -> None:
-    """Lower this thread's CPU priority (Linux: a thread's nice value is its own): the checks use the
-    CPU that uploads, requests and jobs leave, and catch up when they pause."""
-    with contextlib.suppress(AttributeError, OSError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
-
-
 class Verifier:
     """Checks `verifying` uploads on `workers` threads of this process (see the module); `maker` makes
     the sessions that write (BEGIN IMMEDIATE on SQLite), `read_maker` those that only read."""
@@ -113,9 +104,7 @@ class Verifier:
     ) -> None:
         self.maker, self.read_maker, self.storage = maker, read_maker, storage
         self.tmp_dir, self.stale_s = tmp_dir, stale_s
-        self.pool = ThreadPoolExecutor(
-            max_workers=workers, thread_name_prefix="verify", initializer=_background_priority
-        )
+        self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="verify")
 
     def submit(self, upload_id: str):
         """Check the upload (already claimed) on a worker thread; the future's result: its state."""

@@ -137,3 +137,28 @@ def test_key_cache_resolves_one_lookup_at_a_time():
         assert (await cache.resolve("h", lookup((None, "API key revoked"))))[0] is None
 
     asyncio.run(scenario())
+
+
+def test_status_cache_forget_wins_over_a_read_under_way():
+    """A read that started before forget() (an event told of a change) does not store its answer: the
+    next read goes to the database."""
+    cache = StatusCache(0.5)
+
+    async def scenario() -> None:
+        gate = asyncio.Event()
+
+        async def slow() -> Entry:
+            await gate.wait()
+            return Entry("t1", b"old")
+
+        async def fresh() -> Entry:
+            return Entry("t1", b"new")
+
+        first = asyncio.ensure_future(cache.get("j", "t1", slow))
+        await asyncio.sleep(0)
+        cache.forget("j")  # the job changed while the read was under way
+        gate.set()
+        assert (await first).body == b"old"  # its own caller gets what it read
+        assert (await cache.get("j", "t1", fresh)).body == b"new"  # not served from memory
+
+    asyncio.run(scenario())

@@ -279,8 +279,13 @@ def job_event_stream(
     """Server-sent events: the job's status, stage and progress whenever they change; ends at a final
     status."""
     session.close()  # the stream polls with its own short sessions; hold no connection meanwhile
+    cache, job_id = request.app.state.status_cache, job.id
     stream = job_events(
-        request.app.state.sessionmaker, job.id, settings.events_poll_s, settings.events_heartbeat_s
+        request.app.state.sessionmaker,
+        job_id,
+        settings.events_poll_s,
+        settings.events_heartbeat_s,
+        on_change=lambda: cache.forget(job_id),
     )
     headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
     return StreamingResponse(stream, media_type="text/event-stream", headers=headers)

@@ -387,7 +387,13 @@ async function jobPage(jobId) {
       await render();
     } else if (ev === "end") {
       logLine(`end: ${data.status}`);
-      job = await api("GET", `/jobs/${jobId}`); await render();
+      // the status read may lag the event by a moment (another API process's cache): ask until it agrees
+      for (let i = 0; i < 10; i++) {
+        job = await api("GET", `/jobs/${jobId}`);
+        if (job.status === data.status) break;
+        await new Promise((r) => setTimeout(r, 300));
+      }
+      job = { ...job, status: data.status }; await render();
     }
   });
 }
