@@ -295,6 +295,21 @@ def celery_worker(service_settings, tmp_path_factory):
         _stop(proc, timeout=15)
 
 
+def new_tenant(app, prefix="t"):
+    """A new tenant of the app's database and its API key: SimpleNamespace(id, headers)."""
+    import types
+    import uuid
+
+    from api.bootstrap import create_tenant_with_key
+    from shared.db import crud
+
+    with app.state.sessionmaker() as s:
+        key = create_tenant_with_key(s, f"{prefix}-{uuid.uuid4().hex[:8]}")
+        tenant_id = crud.get_api_key(s, key).tenant_id
+        s.commit()
+    return types.SimpleNamespace(id=tenant_id, headers={"Authorization": f"Bearer {key}"})
+
+
 def jobbable_project(client, headers, make_jpeg, ground=True, aerial=3, name=None):
     """A project a job can be created on: `aerial` aerial images (and one ground image), a POS row for
     each, and a cameras.json for both sets (the test images carry no EXIF). Returns its id."""

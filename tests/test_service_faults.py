@@ -22,7 +22,7 @@ import uuid
 from pathlib import Path
 
 import pytest
-from conftest import upload_survey, worker_environment
+from conftest import new_tenant, upload_survey, worker_environment
 from servers import RedisServer, _spawn, _stop, _tail
 
 pytestmark = pytest.mark.slow
@@ -62,9 +62,7 @@ class Node:
 def stack(service_settings, tmp_path_factory, request):
     from fastapi.testclient import TestClient
 
-    from api.bootstrap import create_tenant_with_key
     from api.main import create_app
-    from shared.db import crud
     from shared.db.session import upgrade_database
 
     folder = tmp_path_factory.mktemp("faults")
@@ -105,11 +103,7 @@ def stack(service_settings, tmp_path_factory, request):
     app = create_app(settings)
     try:
         with TestClient(app) as client:
-            with app.state.sessionmaker() as s:
-                key = create_tenant_with_key(s, f"faults-{uuid.uuid4().hex[:8]}")
-                tenant_id = crud.get_api_key(s, key).tenant_id
-                s.commit()
-            tenant = types.SimpleNamespace(id=tenant_id, headers={"Authorization": f"Bearer {key}"})
+            tenant = new_tenant(app, "faults")
             yield types.SimpleNamespace(
                 client=client, tenant=tenant, redis=redis_server, nodes=nodes, start_worker=start_worker,
                 app=app, beat=beat, folder=folder,

@@ -417,18 +417,14 @@ def test_embedded_dispatcher_runs_a_job(tiny_survey, tmp_path):
 # -- a real Celery worker ------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def service(service_settings, celery_worker):
+    from conftest import new_tenant
     from fastapi.testclient import TestClient
 
-    from api.bootstrap import create_tenant_with_key
     from api.main import create_app
 
     app = create_app(service_settings)
     with TestClient(app) as client:
-        with app.state.sessionmaker() as s:
-            key = create_tenant_with_key(s, f"workers-{uuid.uuid4().hex[:8]}")
-            tenant_id = crud.get_api_key(s, key).tenant_id
-            s.commit()
-        tenant = types.SimpleNamespace(id=tenant_id, headers={"Authorization": f"Bearer {key}"})
+        tenant = new_tenant(app, "workers")
         yield types.SimpleNamespace(app=app, client=client, tenant=tenant, worker=celery_worker)
 
 
