@@ -3,9 +3,8 @@
 Every request names its API key; looking the key up in the database costs a connection checkout and a
 query, and on a busy API those requests queue for the thread pool and the connection pool together.
 `KeyCache` keeps the keys that authenticated for `ttl_s` seconds (settings.auth_cache_s) in this
-process: a key revoked elsewhere (`midview admin key-revoke`, another API process) stops working here
-within ttl_s; a key revoked through this process stops at once (`forget`). Unknown or revoked keys are
-not cached: each such request asks the database again.
+process: a key revoked (`midview admin key-revoke`) stops working within ttl_s. Unknown or revoked keys
+are not cached: each such request asks the database again.
 """
 
 from __future__ import annotations

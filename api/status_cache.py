@@ -31,10 +31,8 @@ class StatusCache:
 
     def __init__(self, ttl_s: float, max_size: int = 10_000, clock=time.monotonic) -> None:
         self.ttl_s, self.max_size, self.clock = ttl_s, max_size, clock
-        self._items: OrderedDict[str, tuple[float, Entry | None]] = OrderedDict()
-        self._pending: dict[str, asyncio.Future[Entry | None]] = {}
-        self._generation: dict[str, int] = {}  # bumped by forget()
-        self.hits = self.misses = 0
+        self._items: OrderedDict[str, tuple[float, Entry]] = OrderedDict()
+        self._pending: dict[str, asyncio.Future[Entry | None]] = {}  # forget() drops a job's read
 
     async def get(
         self, job_id: str, tenant_id: str, load: Callable[[], Awaitable[Entry | None]]
@@ -52,17 +50,14 @@ class StatusCache:
         if item is not None and item[1].tenant_id != tenant_id:
             return None  # another tenant's job: no load on their behalf
         if item is not None and item[0] > now:
-            self.hits += 1
             return item[1]
         pending = self._pending.get(job_id)
         if item is not None and item[0] + self.ttl_s > now:
-            self.hits += 1
             if pending is None:
                 self._start(job_id, load)
             return item[1]
         if pending is None:
             pending = self._start(job_id, load)
-        self.misses += 1
         entry = await asyncio.shield(pending)
         return entry if entry is not None and entry.tenant_id == tenant_id else None
 
@@ -71,16 +66,15 @@ class StatusCache:
     ) -> asyncio.Future[Entry | None]:
         """Run load() as a task that stores its entry (or drops the job's: None) when done."""
 
-        generation = self._generation.get(job_id, 0)
-
         async def run() -> Entry | None:
             try:
                 entry = await load()
             finally:
-                if self._pending.get(job_id) is task:
+                current = self._pending.get(job_id) is task  # not when forget() dropped it meanwhile
+                if current:
                     del self._pending[job_id]
-            if self._generation.get(job_id, 0) != generation:
-                return entry  # forgotten meanwhile: this read may predate what made it forget
+            if not current:
+                return entry  # this read may predate what made the job forgotten: not stored
             if entry is None:  # unknown ids are not remembered: a flood of them cannot fill the cache
                 self._items.pop(job_id, None)
                 return None
@@ -99,6 +93,3 @@ class StatusCache:
         """Drop the job's entry; a read already under way will not store its (maybe older) answer."""
         self._items.pop(job_id, None)
         self._pending.pop(job_id, None)
-        self._generation[job_id] = self._generation.get(job_id, 0) + 1
-        if len(self._generation) > 4 * self.max_size:
-            self._generation.clear()  # bounded; a cleared count only costs a read already under way

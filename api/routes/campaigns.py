@@ -161,6 +161,6 @@ def retry_failed(
     rerun_jobs = []
     for job in failed[:n]:
         stage = failed_stage(job) if body.from_failed_stage else None
-        request.app.state.status_cache.forget(job.id)
         rerun_jobs.append(campaign_job(rerun(session, dispatcher, job, stage)))
+        request.app.state.status_cache.forget(job.id)  # after the commit: no read caches the old row
     return CampaignRetried(rerun=rerun_jobs, waiting=[j.id for j in failed[n:]])

@@ -336,7 +336,6 @@ def complete_upload(
             )
         upload.sha256 = body.sha256.lower()
     parts = _parts_to_complete(storage, upload, body)
-    before = _out(upload, storage)  # while the storage knows the multipart upload (parts_via)
     if crud.get_image(session, project.id, upload.name) is not None:
         _drop(session, storage, upload)
         raise HTTPException(
@@ -352,7 +351,7 @@ def complete_upload(
         upload.state, upload.verify_started_at = "verifying", utcnow()
         session.commit()
         request.app.state.verifier.submit(upload.id)
-        out = before.model_copy(update={"state": "verifying"}).model_dump_json()
+        out = _out(upload, storage).model_dump_json()
         return Response(out, status_code=status.HTTP_202_ACCEPTED, media_type="application/json")
     try:
         row, created = finish_upload(session, storage, upload, settings.upload_tmp_dir)
