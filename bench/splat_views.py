@@ -81,7 +81,12 @@ def main() -> None:
     ap.add_argument("--scene", type=Path, required=True, help="a synthetic scene folder (midview synth)")
     ap.add_argument("--sparse", type=Path, required=True, help="the aerial SfM model the 3DGS models used")
     ap.add_argument("--views", type=Path, required=True, help="a views.json of planned views")
-    ap.add_argument("--splat", action="append", required=True, help="LABEL=PATH of a 3DGS training folder")
+    ap.add_argument(
+        "--splat",
+        action="append",
+        required=True,
+        help="LABEL=PATH of a 3DGS training folder, or of trained blocks (a folder with plan.json)",
+    )
     ap.add_argument("--width", type=int, default=512, help="render width (the views' field of view)")
     ap.add_argument("--limit", type=int, default=0, help="at most this many views, evenly spread (0: all)")
     ap.add_argument("--backend", default="auto")
@@ -92,7 +97,13 @@ def main() -> None:
     models = {}
     for item in args.splat:
         label, _, path = item.partition("=")
-        models[label] = SplatRenderer(path, args.backend, 0.5)
+        if (Path(path) / "plan.json").exists():  # trained blocks (bench/splat_blocks.py, a job's blocks/)
+            from services.splat.blocks import BlockRenderer
+
+            model = json.loads((Path(path) / "plan.json").read_text())["model"]
+            models[label] = BlockRenderer(model, path, args.backend, 0.5)
+        else:
+            models[label] = SplatRenderer(path, args.backend, 0.5)
     views = json.loads(args.views.read_text())["views"]
     if args.limit and len(views) > args.limit:
         views = [views[i] for i in np.linspace(0, len(views) - 1, args.limit).round().astype(int)]

@@ -70,6 +70,7 @@ def rasterization(
     backend: str = "cpu",
     near_plane: float = NEAR,
     far_plane: float = FAR,
+    limits: tuple[float, ...] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """Render Gaussians into one pinhole camera.
 
@@ -79,7 +80,8 @@ def rasterization(
     z-depth: accumulated depth / alpha) or "RGB+D" / "RGB+ED". backgrounds (D,) or None (black).
     Returns render_colors (H, W, D), render_alphas (H, W, 1) and info with "means2d" (N, 2) (call
     `retain_grad` on it before backward to read its gradient), "radii" (N, 2), "depths" (N,), "width",
-    "height", "n_cameras".
+    "height", "n_cameras". `limits` (CPU backends): the projection's Jacobian bounds of a larger image
+    this camera is a crop of (projection.jacobian_limits), so that the crop renders exactly its window.
     """
     if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be one of {RENDER_MODES}")
@@ -93,13 +95,16 @@ def rasterization(
         )  # fmt: skip
     # project only the Gaussians that can reach the image (the rest get radii 0 and no gradient)
     n = means.shape[0]
-    ids = frustum_candidates(means, scales, opacities, viewmat, K, width, height, near_plane, far_plane)
+    ids = frustum_candidates(
+        means, scales, opacities, viewmat, K, width, height, near_plane, far_plane, limits=limits
+    )
     sub = ids.numel() < n
     if sub:
         means, quats, scales, opacities, colors = (x[ids] for x in (means, quats, scales, opacities, colors))
     means2d, conics, depths, radii = project_gaussians(
-        means, quats, scales, opacities, viewmat, K, width, height, near=near_plane, far=far_plane
-    )
+        means, quats, scales, opacities, viewmat, K, width, height, near=near_plane, far=far_plane,
+        limits=limits,
+    )  # fmt: skip
     rgb = view_colors(means, colors, viewmat, sh_degree) if "RGB" in render_mode else None
     if sub:  # full-size outputs for the caller; the rasterizer reads the 2D means through them
         full_means2d = _full_size(means2d, ids, n)

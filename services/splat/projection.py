@@ -45,9 +45,14 @@ def covariances(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     return M @ M.transpose(1, 2)
 
 
-def jacobian_limits(K: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, ...]:
+def jacobian_limits(
+    K: torch.Tensor, width: int, height: int, limits: tuple[float, ...] | None = None
+) -> tuple[torch.Tensor, ...]:
     """Bounds (x+, x-, y+, y-) on x/z and y/z where the projection's Jacobian is evaluated: a bit beyond
-    the frustum, as 3DGS / gsplat clamp it. 0-dim tensors of K's dtype."""
+    the frustum, as 3DGS / gsplat clamp it. 0-dim tensors of K's dtype. `limits`: these bounds instead
+    (a crop of a larger image renders exactly that image's window with the larger image's bounds)."""
+    if limits is not None:
+        return tuple(torch.tensor(float(v), dtype=K.dtype) for v in limits)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
     return (
@@ -76,6 +81,7 @@ def project_gaussians(
     near: float = NEAR,
     far: float = FAR,
     eps2d: float = EPS2D,
+    limits: tuple[float, ...] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Project Gaussians with the local affine (EWA) approximation.
 
@@ -83,6 +89,7 @@ def project_gaussians(
     Returns means2d (N, 2) pixels, conics (N, 3) = upper triangle (a, b, c) of the inverse 2D covariance,
     depths (N,) camera z, radii (N, 2) int32 half extents in pixels of the region where the Gaussian's
     alpha can reach ALPHA_MIN (0 = culled: behind the camera, off-screen or too transparent).
+    `limits`: the Jacobian's bounds on x/z, y/z (see jacobian_limits; default: this image's).
     """
     R, t = viewmat[:3, :3], viewmat[:3, 3]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -91,7 +98,7 @@ def project_gaussians(
     in_depth = (z > near) & (z < far)
     zs = torch.where(in_depth, z, torch.ones_like(z))  # safe denominators for culled Gaussians
     x, y = pc[:, 0], pc[:, 1]
-    lim_xp, lim_xn, lim_yp, lim_yn = jacobian_limits(K, width, height)
+    lim_xp, lim_xn, lim_yp, lim_yn = jacobian_limits(K, width, height, limits)
     tx = zs * torch.minimum(torch.maximum(x / zs, -lim_xn), lim_xp)
     ty = zs * torch.minimum(torch.maximum(y / zs, -lim_yn), lim_yp)
     # 2D covariance J W Sigma W^T J^T = T T^T with T = J W R_q S (J: 2x3 Jacobian, W: camera rotation)
@@ -137,6 +144,7 @@ def frustum_candidates(
     near: float = NEAR,
     far: float = FAR,
     eps2d: float = EPS2D,
+    limits: tuple[float, ...] | None = None,
 ) -> torch.Tensor:
     """Indices (M,) of a superset of the Gaussians `project_gaussians` keeps (radii > 0): in the depth range,
     opaque enough to reach ALPHA_MIN, and with a bound on their screen extent that reaches the image.
@@ -154,7 +162,7 @@ def frustum_candidates(
     k = alpha_reach(opacities)
     ok = (z > near) & (z < far) & (k > 0)
     zs = torch.where(ok, z, torch.ones_like(z))
-    lim_xp, lim_xn, lim_yp, lim_yn = jacobian_limits(K, width, height)
+    lim_xp, lim_xn, lim_yp, lim_yn = jacobian_limits(K, width, height, limits)
     lim_x, lim_y = float(max(lim_xp, lim_xn)), float(max(lim_yp, lim_yn))
     smax = scales.max(-1).values / zs
     root_k = k.clamp_min(0).sqrt()

@@ -171,6 +171,7 @@ class View:
     image: torch.Tensor | None = None
     depth_pixels: torch.Tensor | None = None  # (M, 2) where the SfM points this image sees project
     depth_targets: torch.Tensor | None = None  # (M,) their z-depth in this camera
+    limits: tuple[float, ...] | None = None  # a crop's: the projection bounds of its full image
 
 
 @dataclass
@@ -199,7 +200,7 @@ def scaled_view(v: View, scale: float) -> View:
         img = torch.nn.functional.interpolate(v.image.permute(2, 0, 1)[None], size=(h, w), mode="area")
         image = img[0].permute(1, 2, 0).contiguous()
     pix = None if v.depth_pixels is None else v.depth_pixels * torch.tensor([sx, sy])
-    return View(v.name, K, v.viewmat, w, h, image, pix, v.depth_targets)
+    return View(v.name, K, v.viewmat, w, h, image, pix, v.depth_targets, v.limits)
 
 
 def load_image(path: Path, width: int, height: int) -> torch.Tensor:
@@ -283,11 +284,24 @@ def _set_rng_state(s: dict) -> None:
 
 
 class Trainer:
-    """Optimises Gaussians on `data` with the 3DGS recipe (see `confs`), saving into `out`."""
+    """Optimises Gaussians on `data` with the 3DGS recipe (see `confs`), saving into `out`.
 
-    def __init__(self, conf: dict, data: SceneData, out: str | Path, backend: str = "auto"):
+    `init` (model.py layout): start from these Gaussians instead of the SfM points (a block's share of
+    the whole-scene model). `frozen` (model.py layout): Gaussians rendered with the trained ones in every
+    step but never optimised nor densified (the rest of the scene around a block)."""
+
+    def __init__(
+        self,
+        conf: dict,
+        data: SceneData,
+        out: str | Path,
+        backend: str = "auto",
+        init: dict[str, torch.Tensor] | None = None,
+        frozen: dict[str, torch.Tensor] | None = None,
+    ):
         self.conf = check_conf(merge_conf(_DEFAULT, conf))
         self.data = data
+        self.init = init
         self.out = Path(out)
         self.backend = resolve_backend(backend)
         self.device = torch.device("cuda" if self.backend == "cuda" else "cpu")
@@ -302,11 +316,18 @@ class Trainer:
         self._fine = False  # past the coarse phase (conf["coarse_until"])
         self.elapsed_s = 0.0  # training time so far, over resumes (checkpoints keep it)
         self.history: list[dict] = []
+        self.frozen = None
+        if frozen is not None and len(frozen["means"]):
+            self.frozen = {k: v.detach().to(self.device) for k, v in activated(frozen).items()}
 
     # ---- model and optimizers
     def init_model(self) -> None:
         c = self.conf
         torch.manual_seed(c["seed"])
+        if self.init is not None:
+            self._set_model(splats_from_tensors(self.init).to(self.device))
+            self.strategy_state = self.strategy.initialize_state(self.extent)
+            return
         pts, cols = self.data.points, self.data.colors
         if c["init_random"] > 0 or len(pts) == 0:
             centers = camera_centers(self.data.views)
@@ -335,6 +356,9 @@ class Trainer:
         return self.extent * lr["means"] * (lr["means_final"] / lr["means"]) ** t
 
     def sh_degree_at(self, step: int) -> int:
+        """SH degree of a step: one more every conf["sh_degree_interval"] steps (0: all from the start)."""
+        if not self.conf["sh_degree_interval"]:
+            return self.conf["sh_degree"]
         return min(step // self.conf["sh_degree_interval"], self.conf["sh_degree"])
 
     def is_coarse(self, step: int) -> bool:
@@ -395,6 +419,8 @@ class Trainer:
     ) -> tuple[torch.Tensor, torch.Tensor, dict]:
         """colors (H, W, 3), or (H, W, 4) with the expected depth last when `depth`; alphas; info."""
         p = activated(self.splats)
+        if self.frozen is not None:
+            p = {k: torch.cat([v, self.frozen[k]]) for k, v in p.items()}
         bg = torch.tensor(self.conf["background"] + [0.0] * depth, dtype=torch.float32, device=self.device)
         return rasterization(
             p["means"],
@@ -410,6 +436,7 @@ class Trainer:
             backgrounds=bg,
             render_mode="RGB+ED" if depth else "RGB",
             backend=self.backend,
+            limits=v.limits,
         )
 
     # ---- training
@@ -480,7 +507,7 @@ class Trainer:
                 o.step()
                 o.zero_grad(set_to_none=True)
             changed = self.strategy.step_post_backward(
-                self.splats, self.optimizers, self.strategy_state, step, info
+                self.splats, self.optimizers, self.strategy_state, step, self._own(info)
             )
             self.step = step + 1
             rec = {
@@ -519,6 +546,17 @@ class Trainer:
         if bar is not None:
             bar.close()
         self.train_seconds = time.perf_counter() - t0
+
+    def _own(self, info: dict) -> dict:
+        """`info` of a render trimmed to the trained Gaussians (the frozen ones come after them)."""
+        if self.frozen is None:
+            return info
+        n = len(self.splats["means"])
+        m2 = info["means2d"]
+        own = m2.detach()[:n].clone()
+        if m2.requires_grad and m2.retains_grad and m2.grad is not None:
+            own.grad = m2.grad[:n]
+        return {**info, "means2d": own, "radii": info["radii"][:n], "depths": info["depths"][:n]}
 
     def _fit_time_budget(self, pace: tuple[float, int]) -> tuple[float, int]:
         """Set total_steps to what the rest of conf["time_budget_s"] allows at the pace since `pace`
