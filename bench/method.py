@@ -175,6 +175,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--splat-steps", type=int, default=1500)
     ap.add_argument("--splat-max-width", type=int, default=400)
     ap.add_argument(
+        "--block-steps",
+        type=int,
+        default=0,
+        help="train_blocks: 3DGS steps per block at the source resolution for the splat renderer (0: none)",
+    )
+    ap.add_argument(
         "--splat-set",
         action="append",
         default=[],
@@ -261,13 +267,15 @@ def main(argv: list[str] | None = None) -> int:
     for s, r in res.items():
         timings[f"base:{s}"] = float(r.get("seconds", 0.0))
     jobs: dict[tuple[str, str, str], pipeline.Job] = {}
-    stages = ["plan_views", "render_views", "match_views", "reduce"] + (
+    stages = ["plan_views", "train_blocks", "render_views", "match_views", "reduce"] + (
         [] if args.no_sfm else ["combined_sfm"]
     )
+    if not args.block_steps:
+        stages.remove("train_blocks")
     for mt in matchers:
         for r in renderers:
             for p in planners:
-                name = config_name(r, p, mt)
+                name = config_name(r, p, mt, args.block_steps)
                 keypoints = args.max_keypoints if mt == "aliked-lightglue" else args.sift_keypoints
                 job = make_job(
                     out / name,
@@ -277,6 +285,7 @@ def main(argv: list[str] | None = None) -> int:
                         "view_planner": p,
                         "matcher": mt,
                         "max_keypoints": keypoints,
+                        "block_steps": args.block_steps,
                         "stages": ["aerial_sfm", "train_splat", *stages],
                     },
                     {**settings, "renderer": r},
@@ -308,7 +317,9 @@ def main(argv: list[str] | None = None) -> int:
     files[f"direct ALIKED+LightGlue ({args.max_keypoints})"] = direct_same_budget(scene, base, out)
     timings["direct same budget"] = time.perf_counter() - t0
     for (r, p, mt), job in jobs.items():
-        files[f"midview {config_name(r, p, mt).replace('-', ' ', 1)}"] = job.dir("transfer") / "matches.h5"
+        files[f"midview {config_name(r, p, mt, args.block_steps).replace('-', ' ', 1)}"] = (
+            job.dir("transfer") / "matches.h5"
+        )
     rows = []
     for label, path in files.items():
         s = evaluate_matches(
@@ -359,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         table.add_column(col, justify="left" if col == "config" else "right")
     for (r, p, mt), job in jobs.items():
         pa = pnp_accuracy(scene, job)
-        label = config_name(r, p, mt).replace("-", " ", 1)
+        label = config_name(r, p, mt, args.block_steps).replace("-", " ", 1)
         nv = len(json.loads((job.dir("views") / "views.json").read_text())["views"])
         row = {"pnp": pa, "num_views": nv}
         cells = [label, str(nv), pa["accepted"], _f(pa["mean_m"]), _f(pa["max_m"])]
@@ -484,9 +495,11 @@ def results_doc(rows: list[dict], sfm_rows: dict, timings: dict, argv: list[str]
     }
 
 
-def config_name(renderer: str, planner: str, matcher: str) -> str:
-    """The job folder of a configuration: RENDERER-PLANNER, with -sift for the SIFT matcher."""
-    return f"{renderer}-{planner}" + ("" if matcher == "aliked-lightglue" else f"-{matcher}")
+def config_name(renderer: str, planner: str, matcher: str, block_steps: int = 0) -> str:
+    """The job folder of a configuration: RENDERER-PLANNER, with -sift for the SIFT matcher and -blocksN
+    for the splat renderer with blocks trained N steps."""
+    blocks = f"-blocks{block_steps}" if block_steps and renderer == "splat" else ""
+    return f"{renderer}-{planner}" + ("" if matcher == "aliked-lightglue" else f"-{matcher}") + blocks
 
 
 def _f(v) -> str:

@@ -120,6 +120,9 @@ def run(
         None, help="seconds of 3DGS training at most (fewer steps on a slow machine; default: no limit)"
     ),
     splat_max_width: int = typer.Option(400, help="3DGS training image width"),
+    block_steps: int = typer.Option(
+        600, help="3DGS steps of each block the views see, at the source resolution (0: no blocks)"
+    ),
     max_keypoints: int = typer.Option(1024, help="keypoints per image for matching"),
     seed: int = typer.Option(0, help="random seed"),
     out_crs: str | None = typer.Option(
@@ -191,6 +194,7 @@ def run(
                 "splat_steps": splat_steps,
                 "splat_time_budget_s": splat_time_budget,
                 "splat_max_width": splat_max_width,
+                "block_steps": block_steps,
                 "max_keypoints": max_keypoints,
                 "seed": seed,
                 "out_crs": out_crs,

@@ -10,6 +10,7 @@ JOB/cameras.json         intrinsics per set (the given cameras.json; else the ae
 JOB/sfm/                 aerial_sfm:   sparse/, georef.json, database.db, report.json
 JOB/splat/               train_splat:  point_cloud.ply, metrics.json, ckpts/
 JOB/plan/views.json      plan_views
+JOB/blocks/              train_blocks: plan.json, BLOCK/point_cloud.ply + block.json (+ ckpts/), report.json
 JOB/views/               render_views: NAME.png, NAME.depth.npy, views.json
 JOB/features/            match_views:  the aerial and ground images' matching features (cache)
 JOB/matches/NAME.h5      match_views:  one file per view
@@ -22,7 +23,9 @@ JOB/stages/STAGE.json    done markers: input fingerprint, outputs, seconds, summ
 Every stage is a function of the job folder. A stage whose outputs exist and whose input fingerprint
 (a hash of its conf and of its input files' names, sizes and modification times) matches its marker is
 skipped, so a rerun skips finished stages and resumes a failed one (3DGS training resumes from its last
-checkpoint, view matching skips views already matched). Progress goes through a callback
+checkpoint, view matching skips views already matched). Stages made of independent units (`FanOut`:
+the blocks of train_blocks, the views of match_views) run them one by one here and one task each in the
+service. Progress goes through a callback
 `progress(stage, fraction, message)`.
 
     job = Job.create("runs/job1", aerial="data/aerial", ground="data/ground", pos="data/pos.csv")
@@ -43,7 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from services.conf import merge_conf
-from shared.job_options import OPTIONAL_STAGES, STAGE_QUEUES, STAGES, JobOptions
+from shared.job_options import FANOUT_STAGES, OPTIONAL_STAGES, STAGE_QUEUES, STAGES, JobOptions
 
 logger = logging.getLogger("midview.pipeline")
 
@@ -58,6 +61,7 @@ DEFAULT_SETTINGS: dict[str, Any] = {
     "torch_threads": None,  # None: leave torch's setting; 1 is much faster on a loaded 2-core machine
     "sfm": {},  # overrides of services.sfm confs
     "splat": {},  # overrides of services.splat confs
+    "blocks": {},  # overrides of services.splat.blocks confs["default"]
     "viewpoints": {},  # overrides of services.viewpoints confs
     "views": {},  # services.views conf
     "matching": {},  # overrides of services.matching.views confs (e.g. resize_max)
@@ -244,8 +248,31 @@ class Job:
             conf["pos_limits"] = self.transfer_conf()["pnp"]
         return conf
 
+    def blocks_conf(self) -> dict:
+        """services.splat.blocks conf: the default, each block trained `block_steps` steps (its schedule
+        scaled to them), then the settings' overrides."""
+        from services.splat import rescale_schedule
+        from services.splat.blocks import confs
+
+        steps = max(1, int(self.options.block_steps))
+        train = rescale_schedule(confs["default"]["train"], steps)
+        train["ckpt_every"] = max(1, steps // 6)
+        return merge_conf(merge_conf(confs["default"], {"train": train}), self.settings["blocks"])
+
+    @property
+    def uses_blocks(self) -> bool:
+        """Whether the views render from trained blocks (train_blocks among the job's stages, blocks
+        trained at least one step, the 3DGS renderer)."""
+        return (
+            self.settings["renderer"] == "splat"
+            and "train_blocks" in self.options.stages
+            and self.options.block_steps > 0
+        )
+
     # renderer
-    def renderer(self):
+    def renderer(self, blocks: bool = True):
+        """The views' renderer: the trained blocks over the whole-scene 3DGS when the job has them (and
+        `blocks`), else the whole-scene 3DGS, or the ground truth (renderer "gt")."""
         from services import views
 
         if self.settings["renderer"] == "gt":
@@ -254,14 +281,20 @@ class Job:
             return views.GroundTruthRenderer(self.settings["scene"], self.dir("sfm") / "sparse")
         if self.settings["renderer"] != "splat":
             raise ValueError(f"unknown renderer {self.settings['renderer']!r} (splat, gt)")
-        return views.SplatRenderer(
-            self.dir("splat"), self.settings["splat_backend"], self.settings["views"].get("min_alpha", 0.5)
-        )
+        min_alpha = self.settings["views"].get("min_alpha", 0.5)
+        if blocks and self.uses_blocks and (self.dir("blocks") / "report.json").is_file():
+            from services.splat.blocks import BlockRenderer
 
-    def renderer_inputs(self) -> list[Path]:
+            return BlockRenderer(
+                self.dir("splat"), self.dir("blocks"), self.settings["splat_backend"], min_alpha
+            )
+        return views.SplatRenderer(self.dir("splat"), self.settings["splat_backend"], min_alpha)
+
+    def renderer_inputs(self, blocks: bool = True) -> list[Path]:
         if self.settings["renderer"] == "gt":
             return [Path(self.settings["scene"]) / "gt" / "scene.json"]
-        return [self.dir("splat") / "point_cloud.ply"]
+        own = [self.dir("blocks") / "plan.json", self.dir("blocks") / "report.json"]
+        return [self.dir("splat") / "point_cloud.ply", *(own if blocks and self.uses_blocks else [])]
 
 
 # -- fingerprints and markers --------------------------------------------------------------------
@@ -310,6 +343,41 @@ def fingerprint(conf: Any, inputs: list[Path], root: Path | None = None) -> str:
     return h.hexdigest()
 
 
+@dataclass(frozen=True)
+class FanOut:
+    """A stage made of independent units of work (the service runs one task per unit, on `queue(job)`).
+
+    prepare(job) -> files: done once before the units (every unit task gets its files); units(job) ->
+    their names (after prepare); unit(job, name, report) -> the files one unit wrote (a unit already
+    done returns at once); marker(name) -> the job-relative file whose presence tells a unit is done;
+    finish(job, names) -> the stage's summary, once every unit is done."""
+
+    prepare: Callable[[Job], list[Path]]
+    units: Callable[[Job], list[str]]
+    unit: Callable[[Job, str, Callable[[float, str], None]], list[Path]]
+    marker: Callable[[str], str]
+    queue: Callable[[Job], str]
+    finish: Callable[[Job, list[str]], dict]
+    ready: Callable[[Job], bool]
+
+
+def run_fanout(stage: str) -> Callable[[Job, Callable[[float, str], None]], dict]:
+    """The in-process run of a fan-out stage: prepare, every unit in order, finish."""
+
+    def run(job: Job, report: Callable[[float, str], None]) -> dict:
+        fan = REGISTRY[stage].fanout
+        _set_threads(job)
+        report(0.0, "preparing the units")
+        fan.prepare(job)
+        names = fan.units(job)
+        for i, n in enumerate(names):
+            fan.unit(job, n, lambda f, m, i=i: report((i + min(max(f, 0.0), 1.0)) / len(names), m))
+            report((i + 1) / len(names), f"{n} done ({i + 1}/{len(names)})")
+        return fan.finish(job, names)
+
+    return run
+
+
 @dataclass
 class StageDef:
     """One stage: run(job, report) -> summary dict; its conf, inputs and outputs derived from the job;
@@ -325,6 +393,7 @@ class StageDef:
     dirs: tuple[str, ...] = ()
     extra: tuple[str, ...] = ()
     artifacts: tuple[tuple[str, str], ...] = ()
+    fanout: FanOut | None = None
 
     @property
     def queue(self) -> str:
@@ -493,7 +562,7 @@ def _plan_views(job: Job, report) -> dict:
     from services import viewpoints, views
 
     report(0.0, "planning views")
-    r = job.renderer()
+    r = job.renderer(blocks=False)
     try:
         path = viewpoints.main(
             job.viewpoint_conf(),
@@ -546,27 +615,106 @@ def prepare_match_views(job: Job) -> Path:
     return mv.prepare_features(job.match_conf(), job.image_dir, sorted(names), job.features_path)
 
 
-def match_view_unit(job: Job, name: str) -> Path:
+def match_view_unit(job: Job, name: str, report=None) -> list[Path]:
     """One unit of the match_views fan-out: match view `name` (the features must be prepared)."""
     from services.matching import views as mv
 
     doc = json.loads((job.dir("views") / "views.json").read_text())
     view = next(v for v in doc["views"] if v["name"] == name)
-    return mv.match_view(
-        job.match_conf(), view, job.dir("views"), job.image_dir, job.features_path, job.dir("matches")
-    )
+    return [
+        mv.match_view(
+            job.match_conf(), view, job.dir("views"), job.image_dir, job.features_path, job.dir("matches")
+        )
+    ]
 
 
-def _match_views(job: Job, report) -> dict:
-    _set_threads(job)
-    report(0.0, "extracting features of the aerial and ground images")
-    prepare_match_views(job)
-    names = view_names(job)
-    for i, n in enumerate(names):
-        match_view_unit(job, n)
-        report((i + 1) / max(len(names), 1), f"matched view {n}")
+def finish_match_views(job: Job, names: list[str]) -> dict:
     _prune(job.dir("matches"), {f"{n}.h5" for n in names})
     return {"num_views": len(names)}
+
+
+# -- train_blocks: block-wise 3DGS at the source resolution (services.splat.blocks) -------------
+def prepare_blocks(job: Job) -> list[Path]:
+    """Plan the blocks of the planned views into blocks/plan.json (kept when made from the same conf,
+    views and whole-scene model). Renderer "gt" plans none."""
+    from services.splat import blocks
+
+    path = job.dir("blocks") / "plan.json"
+    conf = job.blocks_conf()
+    if not job.uses_blocks:
+        why = "renderer gt: no 3DGS model to refine" if job.settings["renderer"] == "gt" else "block_steps 0"
+        return [blocks.write_plan({"conf": conf, "blocks": [], "skipped": why}, path)]
+    model = job.dir("splat") / "point_cloud.ply"
+    views_json = job.dir("plan") / "views.json"
+    h = hashlib.sha256(json.dumps(conf, sort_keys=True).encode())
+    for f in (views_json, model):
+        h.update(hashlib.sha256(f.read_bytes()).digest())
+    inputs = h.hexdigest()
+    try:
+        if json.loads(path.read_text()).get("inputs") == inputs:
+            return [path]
+    except (FileNotFoundError, ValueError):
+        pass
+    import pycolmap
+
+    from services.splat import load_model
+
+    views = json.loads(views_json.read_text())["views"]
+    rec = pycolmap.Reconstruction(str(job.dir("sfm") / "sparse"))
+    plan = blocks.plan_blocks(conf, load_model(model), rec, views, job.settings["splat_backend"])
+    return [blocks.write_plan({**plan, "inputs": inputs}, path)]
+
+
+def block_ids(job: Job) -> list[str]:
+    """The planned blocks (units of the train_blocks stage)."""
+    return [b["id"] for b in json.loads((job.dir("blocks") / "plan.json").read_text())["blocks"]]
+
+
+def train_block_unit(job: Job, block: str, report=None) -> list[Path]:
+    """One unit of the train_blocks fan-out: train block `block` (the plan must exist)."""
+    from services.splat import blocks
+
+    out = job.dir("blocks")
+    blocks.train_block(
+        out / "plan.json",
+        block,
+        job.dir("splat") / "point_cloud.ply",
+        job.dir("sfm") / "sparse",
+        job.image_dir,
+        out,
+        job.settings["splat_backend"],
+        report,
+    )
+    return [p for p in (out / block / "point_cloud.ply", out / block / "block.json") if p.is_file()]
+
+
+def finish_blocks(job: Job, names: list[str]) -> dict:
+    """blocks/report.json: each block's figures, and the reason of each block that was not trained."""
+    out = job.dir("blocks")
+    docs = [json.loads((out / n / "block.json").read_text()) for n in names]
+    for p in out.iterdir():  # blocks of an earlier plan
+        if p.is_dir() and p.name not in names:
+            shutil.rmtree(p)
+    plan = json.loads((out / "plan.json").read_text())
+    untrained = [{k: d[k] for k in ("id", "reason", "views")} for d in docs if not d["trained"]]
+    report = {
+        "blocks": len(docs),
+        "trained": sum(d["trained"] for d in docs),
+        "untrained": untrained,
+        "gsd_m": plan.get("gsd_m"),
+        "seconds": round(sum(d.get("seconds", 0.0) for d in docs), 1),
+        "per_block": [{k: v for k, v in d.items() if k != "digest"} for d in docs],
+        **({"skipped": plan["skipped"]} if "skipped" in plan else {}),
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    return {k: report[k] for k in ("blocks", "trained", "untrained", "seconds")}
+
+
+def blocks_queue(job: Job) -> str:
+    """Blocks train on GPU workers when this machine's backend is CUDA, else on the cpu queue."""
+    from services.splat import resolve_backend
+
+    return "gpu" if resolve_backend(job.settings["splat_backend"]) == "cuda" else "cpu"
 
 
 def _reduce(job: Job, report) -> dict:
@@ -682,11 +830,36 @@ REGISTRY: dict[str, StageDef] = {
             j.dir("sfm") / "georef.json",
             j.pos,
             j.cameras,
-            *j.renderer_inputs(),
+            *j.renderer_inputs(blocks=False),
         ],
         lambda j: [j.dir("plan") / "views.json"],
         dirs=("plan",),
         artifacts=(("plan/views.json", "views"),),
+    ),
+    "train_blocks": StageDef(
+        "train_blocks",
+        run_fanout("train_blocks"),
+        lambda j: {
+            "blocks": j.blocks_conf(),
+            "renderer": j.settings["renderer"],
+            "backend": j.settings["splat_backend"],
+        },
+        lambda j: (
+            [j.dir("plan") / "views.json", j.dir("sfm") / "sparse", *j.renderer_inputs(blocks=False)]
+            + ([] if j.settings["renderer"] == "gt" else [_images(j, "aerial")])
+        ),
+        lambda j: [j.dir("blocks") / "plan.json", j.dir("blocks") / "report.json"],
+        dirs=("blocks",),
+        artifacts=(("blocks/report.json", "report"), ("blocks/plan.json", "blocks")),
+        fanout=FanOut(
+            prepare=prepare_blocks,
+            units=block_ids,
+            unit=train_block_unit,
+            marker=lambda n: f"blocks/{n}/block.json",
+            queue=blocks_queue,
+            finish=finish_blocks,
+            ready=lambda j: (j.dir("blocks") / "plan.json").is_file(),
+        ),
     ),
     "render_views": StageDef(
         "render_views",
@@ -695,6 +868,7 @@ REGISTRY: dict[str, StageDef] = {
             "views": j.settings["views"],
             "renderer": j.settings["renderer"],
             "backend": j.settings["splat_backend"],
+            "blocks": j.uses_blocks,
         },
         lambda j: [j.dir("plan") / "views.json", *j.renderer_inputs()],
         lambda j: [j.dir("views") / "views.json"],
@@ -703,11 +877,20 @@ REGISTRY: dict[str, StageDef] = {
     ),
     "match_views": StageDef(
         "match_views",
-        _match_views,
+        run_fanout("match_views"),
         lambda j: {"matching": j.match_conf()},
         lambda j: [j.dir("views") / "views.json", _images(j, "aerial"), _images(j, "ground")],
         lambda j: [j.dir("matches"), j.features_path],
         dirs=("matches", "features"),
+        fanout=FanOut(
+            prepare=lambda j: [prepare_match_views(j)],
+            units=view_names,
+            unit=match_view_unit,
+            marker=lambda n: f"matches/{n}.h5",
+            queue=lambda j: "cpu",
+            finish=finish_match_views,
+            ready=lambda j: j.features_path.is_file(),
+        ),
     ),
     "reduce": StageDef(
         "reduce",
@@ -767,6 +950,7 @@ REGISTRY: dict[str, StageDef] = {
     ),
 }
 assert tuple(REGISTRY) == STAGES, "the registry must follow shared.job_options.STAGES"
+assert {s for s, d in REGISTRY.items() if d.fanout} == FANOUT_STAGES, "shared.job_options.FANOUT_STAGES"
 
 
 # -- runner --------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ Stage = Literal[
     "aerial_sfm",
     "train_splat",
     "plan_views",
+    "train_blocks",
     "render_views",
     "match_views",
     "reduce",
@@ -30,6 +31,7 @@ STAGE_QUEUES: dict[str, str] = {
     "aerial_sfm": "gpu",
     "train_splat": "gpu",
     "plan_views": "gpu",
+    "train_blocks": "gpu",  # fanned out: one task per block (on the cpu queue where there is no GPU)
     "render_views": "gpu",
     "match_views": "cpu",  # fanned out: one task per rendered view
     "reduce": "reduce",
@@ -37,9 +39,12 @@ STAGE_QUEUES: dict[str, str] = {
     "splat_all": "gpu",
 }
 
+# stages made of independent units, one task each (services.pipeline.FanOut): their first task prepares
+# the units and fans them out, a last run of the stage checks and summarises them
+FANOUT_STAGES = frozenset({"train_blocks", "match_views"})
 # stages that need ground images (everything after the aerial-only part)
 GROUND_STAGES = frozenset(
-    {"plan_views", "render_views", "match_views", "reduce", "combined_sfm", "splat_all"}
+    {"plan_views", "train_blocks", "render_views", "match_views", "reduce", "combined_sfm", "splat_all"}
 )
 
 
@@ -78,6 +83,14 @@ class JobOptions(BaseModel):
         le=7 * 24 * 3600,
         description="Seconds of 3DGS training at most: fewer than splat_steps iterations when the machine is"
         " slower (the run's length follows the pace of its last iterations); null: all of them",
+    )
+    block_steps: int = Field(
+        600,
+        ge=0,
+        le=200_000,
+        description="3DGS training steps of each block of the scene the intermediate views see, on crops of"
+        " the aerial images at their source resolution (stage train_blocks); 0: none, the views render from"
+        " the whole-scene 3DGS",
     )
     splat_max_width: int = Field(
         1600, ge=64, le=8192, description="Aerial images are downscaled to this width for 3DGS training"

@@ -46,6 +46,7 @@ OPTIONS = {
     "views_per_ground_image": 1,
     "splat_steps": 1000,  # 300 gives views that match nothing at all
     "splat_max_width": 240,
+    "block_steps": 200,  # train_blocks: one block on `tiny`, fanned out as a unit task
     "max_keypoints": 1024,
     "seed": 0,
 }
@@ -248,6 +249,7 @@ def test_job_succeeds_with_every_stage(service, first_run):
     for name, kind in [
         ("sfm/report.json", "report"),
         ("splat/point_cloud.ply", "splat"),
+        ("blocks/report.json", "report"),
         ("transfer/matches.h5", "matches"),
         ("transfer/ground_poses.json", "poses"),
         ("combined/report.json", "report"),
@@ -281,6 +283,16 @@ def test_results_equal_the_local_run(service, first_run):
     assert job["metrics"]["plan_views"] == local["plan_views"]
     assert job["metrics"]["train_splat"]["num_gaussians"] == local["train_splat"]["num_gaussians"]
     assert job["metrics"]["reduce"] == local["reduce"]
+    # the blocks trained as unit tasks are those `midview run` trained in-process
+    assert job["metrics"]["train_blocks"]["trained"] == local["train_blocks"]["trained"] >= 1
+    blocks = json.loads(
+        _download(service, first_run.job_id, "blocks/report.json", folder / "b.json").read_text()
+    )
+    local_blocks = json.loads((lr / "blocks" / "report.json").read_text())
+    keys = ("id", "crops", "steps", "gaussians", "psnr_after")
+    assert [{k: b[k] for k in keys} for b in blocks["per_block"]] == [
+        {k: b[k] for k in keys} for b in local_blocks["per_block"]
+    ]
 
     views = _service_view_matches(service, first_run.job_id, folder / "matches")
     local_views = {p.stem: _match_counts(p) for p in sorted((lr / "matches").glob("*.h5"))}

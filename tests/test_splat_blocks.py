@@ -13,10 +13,11 @@ from services.splat.blocks import (
     Block,
     BlockRenderer,
     Crop,
+    grid_cells,
+    merge_blocks,
     plan_blocks,
     read_blocks,
     split_model,
-    split_views,
     train_block,
     write_plan,
 )
@@ -67,16 +68,19 @@ def test_a_downscaled_crop_has_the_scaled_camera():
     np.testing.assert_allclose(crop.intrinsics(K), [[400, 0, 200], [0, 400, 175], [0, 0, 1]])
 
 
-def test_split_views_bounds_each_groups_extent_and_keeps_every_view():
+def test_grid_cells_hold_the_samples_in_cells_of_the_given_size():
     rng = np.random.default_rng(0)
-    samples = {f"v{i}": rng.normal([x, 0.0, 5.0], 1.0, (50, 3)) for i, x in enumerate(np.linspace(0, 90, 10))}
-    groups = split_views(sorted(samples), samples, 30.0, 5.0)
-    assert sorted(n for g in groups for n in g) == sorted(samples)
-    assert len(groups) >= 4
-    for g in groups:
-        pts = np.concatenate([samples[n] for n in g])
-        span = np.percentile(pts, 95, 0) - np.percentile(pts, 5, 0)
-        assert len(g) == 1 or span[:2].max() <= 30.0
+    dense = rng.uniform([0, 0, 0], [60, 30, 10], (3000, 3))
+    stray = rng.uniform([200, 200, 0], [201, 201, 1], (10, 3))  # under min_share: no cell
+    cells = grid_cells(np.concatenate([dense, stray]), 20.0, 0.02)
+    assert len(cells) == 6
+    for lo, hi in cells:
+        np.testing.assert_allclose((hi - lo)[:2], [20.0, 20.0])
+        assert lo[2] >= -0.5 and hi[2] <= 10.5 and hi[2] - lo[2] > 8
+    every = np.zeros(len(dense), bool)
+    for lo, hi in cells:
+        every |= ((dense[:, :2] >= lo[:2]) & (dense[:, :2] <= hi[:2])).all(1)
+    assert every.all()
 
 
 # -- a small survey of a textured wall of Gaussians, with an aerial SfM model of it ------------------
@@ -143,12 +147,12 @@ def _plan(survey, **conf):
     return write_plan(plan, root / "blocks" / "plan.json")
 
 
-def test_every_planned_view_belongs_to_one_block_with_crops(survey):
+def test_every_planned_view_is_covered_by_a_block_with_crops(survey):
     path = _plan(survey)
+    plan = json.loads(path.read_text())
     blocks = read_blocks(path)
-    owned = [v for b in blocks for v in b.views]
-    assert sorted(owned) == ["view0", "view1"]
-    assert len(blocks) == 2  # 12 m of wall at 40 px of ~0.15 m: two blocks
+    assert {v for b in blocks for v in b.views} == {"view0", "view1"} and plan["uncovered"] == []
+    assert len(blocks) >= 2  # 12 m of wall, cells of 40 px of ~0.15 m
     for b in blocks:
         assert b.reason is None and b.crops
         for c in b.crops:
@@ -167,8 +171,9 @@ def test_a_block_killed_mid_training_resumes_to_the_same_result(survey, tmp_path
     real = train.Trainer.train
 
     def killed(self, resume=False, stop_after=None, progress=True):
-        real(self, resume=resume, stop_after=6, progress=progress)
-        raise KeyboardInterrupt
+        real(self, resume=resume, stop_after=min(stop_after, 6), progress=progress)
+        if self.step >= 6:
+            raise KeyboardInterrupt
 
     monkeypatch.setattr(train.Trainer, "train", killed)
     with pytest.raises(KeyboardInterrupt):
@@ -183,6 +188,8 @@ def test_a_block_killed_mid_training_resumes_to_the_same_result(survey, tmp_path
     for k in pa:
         assert torch.equal(pa[k], pb[k]), k
     assert b["steps"] == 12
+    monkeypatch.setattr(train.Trainer, "train", killed)  # done: a rerun trains nothing
+    assert train_block(path, "b00", *args, tmp_path / "b", backend="cpu") == b
 
 
 def test_block_training_sharpens_its_views_and_the_renderer_uses_it(survey, tmp_path):
@@ -210,7 +217,9 @@ def test_block_training_sharpens_its_views_and_the_renderer_uses_it(survey, tmp_
         err_after = np.abs(rgb / 255.0 - truth).mean()
         assert err_after < 0.85 * err_before, (err_before, err_after)
         assert (depth > 0).mean() > 0.5
-    assert sum(r.used.get(b.id, 0) for b in r.blocks) == 2
+    merged, ids = merge_blocks(coarse, tmp_path)
+    assert sorted(ids) == sorted(b.id for b in read_blocks(tmp_path / "plan.json"))
+    assert len(r.model["means"]) == len(merged["means"])
 
 
 def test_a_block_no_aerial_image_sees_ends_with_a_reason(survey, tmp_path):
@@ -228,12 +237,16 @@ def test_a_block_no_aerial_image_sees_ends_with_a_reason(survey, tmp_path):
         "views": blocks[0].views,
     }
     r = BlockRenderer(root / "whole" / "point_cloud.ply", path.parent, backend="cpu")
-    assert r.blocks == []  # views render from the whole-scene model
+    assert r.merged == []  # views render from the whole-scene model
+    whole = load_ply(root / "whole" / "point_cloud.ply")
+    assert all(torch.equal(r.model[k], whole[k].detach()) for k in whole)
 
 
 def test_split_model_partitions_the_gaussians():
     m, _ = _wall(100)
-    b = Block("b00", [-2.0, -1.0, 0.0], [2.0, 1.0, 6.0], ["v"])
+    b = Block("b00", [-2.0, -1.0, 0.0], [2.0, 1.0, 6.0], ["v"], margin=1.0)
     own, rest = split_model(m, b)
     assert len(own["means"]) + len(rest["means"]) == 100 and len(own["means"]) > 10
     assert bool(b.inside(own["means"]).all()) and not bool(b.inside(rest["means"]).any())
+    grown, _ = split_model(m, b, b.margin)
+    assert len(grown["means"]) > len(own["means"])

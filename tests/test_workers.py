@@ -284,12 +284,12 @@ def test_canvas_of_a_job():
 
     app = make_app(Settings(broker_url="redis://127.0.0.1:1/0"))
     c = build_canvas(app, "J", list(STAGES))
+    after = ["render_views", "match_views", "reduce", "combined_sfm", "splat_all"]
     assert [_sig_view(t) for t in c.tasks] == [
         ("run_stage", ["J", "aerial_sfm"], "gpu", True),
         ("run_stage", ["J", "train_splat"], "gpu", True),
         ("run_stage", ["J", "plan_views"], "gpu", True),
-        ("run_stage", ["J", "render_views"], "gpu", True),
-        ("fan_out_views", ["J", ["reduce", "combined_sfm", "splat_all"]], "cpu", True),
+        ("fan_out", ["J", "train_blocks", after], "gpu", True),
     ]
     c = build_canvas(app, "J", ["reduce", "combined_sfm", "splat_all"])
     assert [_sig_view(t) for t in c.tasks] == [
@@ -299,32 +299,45 @@ def test_canvas_of_a_job():
         ("finalize", ["J"], "reduce", True),
     ]
     c = build_canvas(app, "J", ["match_views"])
-    assert [_sig_view(t) for t in c.tasks] == [("fan_out_views", ["J", []], "cpu", True)]
+    assert [_sig_view(t) for t in c.tasks] == [("fan_out", ["J", "match_views", []], "cpu", True)]
     json.dumps(build_canvas(app, "J", list(STAGES)))  # the canvas travels as JSON
 
 
 def test_fan_out_canvas():
-    from workers.tasks import views_canvas
+    from workers.tasks import fan_out_canvas
 
-    c = views_canvas("J", ["v1", "v2"], ["reduce"])
-    assert [_sig_view(t) for t in c.tasks] == [("match_view", ["J", v], "cpu", True) for v in ("v1", "v2")]
+    c = fan_out_canvas("J", "match_views", ["v1", "v2"], "cpu", ["reduce"])
+    assert [_sig_view(t) for t in c.tasks] == [
+        ("stage_unit", ["J", "match_views", v], "cpu", True) for v in ("v1", "v2")
+    ]
     assert [_sig_view(t) for t in c.body.tasks] == [
         ("run_stage", ["J", "match_views"], "cpu", True),
         ("run_stage", ["J", "reduce"], "reduce", True),
         ("finalize", ["J"], "reduce", True),
     ]
-    assert [_sig_view(t) for t in views_canvas("J", [], []).tasks] == [
+    assert [_sig_view(t) for t in fan_out_canvas("J", "match_views", [], "cpu", []).tasks] == [
         ("run_stage", ["J", "match_views"], "cpu", True),
         ("finalize", ["J"], "reduce", True),
+    ]
+    # blocks on the cpu queue (no GPU), then the views rendered from them and the next fan-out
+    c = fan_out_canvas("J", "train_blocks", ["b00", "b01"], "cpu", ["render_views", "match_views", "reduce"])
+    assert [_sig_view(t) for t in c.tasks] == [
+        ("stage_unit", ["J", "train_blocks", b], "cpu", True) for b in ("b00", "b01")
+    ]
+    assert [_sig_view(t) for t in c.body.tasks] == [
+        ("run_stage", ["J", "train_blocks"], "gpu", True),
+        ("run_stage", ["J", "render_views"], "gpu", True),
+        ("fan_out", ["J", "match_views", ["reduce"]], "cpu", True),
     ]
 
 
 def test_route_by_stage():
-    from workers.celery_app import FINALIZE, MATCH_VIEW, RUN_STAGE, route_task
+    from workers.celery_app import FAN_OUT, FINALIZE, RUN_STAGE, STAGE_UNIT, route_task
 
     assert route_task(RUN_STAGE, ["J", "train_splat"], {}, {}) == {"queue": "gpu"}
     assert route_task(RUN_STAGE, ["J", "reduce"], {}, {}) == {"queue": "reduce"}
-    assert route_task(MATCH_VIEW, ["J", "v"], {}, {}) == {"queue": "cpu"}
+    assert route_task(STAGE_UNIT, ["J", "match_views", "v"], {}, {}) == {"queue": "cpu"}
+    assert route_task(FAN_OUT, ["J", "train_blocks", []], {}, {}) == {"queue": "gpu"}
     assert route_task(FINALIZE, ["J"], {}, {}) == {"queue": "reduce"}
 
 

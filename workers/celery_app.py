@@ -37,15 +37,14 @@ WEBHOOKS_EVERY_S = 15.0
 
 # task names (stable: messages in the broker refer to them)
 RUN_STAGE = "midview.run_stage"
-MATCH_VIEW = "midview.match_view"
-FAN_OUT_VIEWS = "midview.fan_out_views"
+FAN_OUT = "midview.fan_out"  # prepares a fan-out stage's units, then replaces itself by their chord
+STAGE_UNIT = "midview.stage_unit"  # one unit of a fan-out stage (a block, a view)
 FINALIZE = "midview.finalize"
 RECONCILE = "midview.reconcile"
 DELIVER_WEBHOOKS = "midview.deliver_webhooks"
 
 TASK_QUEUES = {
-    MATCH_VIEW: "cpu",
-    FAN_OUT_VIEWS: "cpu",
+    STAGE_UNIT: "cpu",  # the fan-out task sets each unit's queue (services.pipeline.FanOut.queue)
     FINALIZE: "reduce",
     RECONCILE: "reduce",
     DELIVER_WEBHOOKS: "reduce",
@@ -76,9 +75,9 @@ def redis_url(settings: Any) -> str | None:
 
 
 def route_task(name: str, args: Any, kwargs: Any, options: Any, task: Any = None, **kw: Any) -> dict | None:
-    """Queue of a task: run_stage by its stage (STAGE_QUEUES), the others by name. Signatures built by
-    the dispatcher also carry an explicit queue, which wins."""
-    if name == RUN_STAGE:
+    """Queue of a task: run_stage and fan_out by their stage (STAGE_QUEUES), the others by name.
+    Signatures built by the dispatcher also carry an explicit queue, which wins."""
+    if name in (RUN_STAGE, FAN_OUT):
         stage = (args[1] if args and len(args) > 1 else None) or (kwargs or {}).get("stage")
         if stage in STAGE_QUEUES:
             return {"queue": STAGE_QUEUES[stage]}

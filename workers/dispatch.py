@@ -1,10 +1,11 @@
 """CeleryDispatcher: a job's stages as a Celery canvas over the gpu/cpu/reduce queues.
 
-    stages without match_views:  chain(run_stage(s1), ..., run_stage(sN), finalize)
-    stages with match_views:     chain(run_stage(s) for s before it, fan_out_views(stages after it))
+    stages without a fan-out stage:  chain(run_stage(s1), ..., run_stage(sN), finalize)
+    with one (FANOUT_STAGES):        chain(run_stage(s) for s before it, fan_out(it, stages after it))
 
-fan_out_views (workers/tasks.py) replaces itself at run time, once the views are rendered and their
-names known, by chord([match_view(v) ...], chain(run_stage(match_views), *after, finalize)).
+fan_out (workers/tasks.py) replaces itself at run time, once the stage's units are known (the blocks
+once planned, the views once rendered), by chord([stage_unit(u) ...], chain(run_stage(it), canvas of
+the stages after it)): a later fan-out stage fans out the same way.
 
 Signatures are built by task name on an app configured from the given settings, so that the API process
 never imports the task module (nor the pipeline behind it).
@@ -17,9 +18,9 @@ from typing import Any
 
 from celery import Celery, chain
 
-from shared.job_options import STAGE_QUEUES
+from shared.job_options import FANOUT_STAGES, STAGE_QUEUES
 from workers.celery_app import (
-    FAN_OUT_VIEWS,
+    FAN_OUT,
     FINALIZE,
     RUN_STAGE,
     TASK_QUEUES,
@@ -36,20 +37,22 @@ def build_canvas(app: Celery, job_id: str, stages: list[str]) -> Any:
     """The canvas of a job's stages (in pipeline order, as JobOptions.stages_from gives them)."""
     if not stages:
         raise ValueError("no stages to run")
+    return chain(*canvas_steps(app, job_id, stages))
+
+
+def canvas_steps(app: Celery, job_id: str, stages: list[str]) -> list[Any]:
+    """run_stage of each stage up to the first fan-out stage, then fan_out(it, the rest); finalize last
+    when there is none (no stages: finalize alone)."""
 
     def sig(name: str, *args: Any, queue: str) -> Any:
         return app.signature(name, args=args, immutable=True, queue=queue)
 
-    def stage(s: str) -> Any:
-        return sig(RUN_STAGE, job_id, s, queue=STAGE_QUEUES[s])
-
-    if "match_views" in stages:
-        i = stages.index("match_views")
-        fan_out = sig(FAN_OUT_VIEWS, job_id, list(stages[i + 1 :]), queue=TASK_QUEUES[FAN_OUT_VIEWS])
-        steps = [*(stage(s) for s in stages[:i]), fan_out]
-    else:
-        steps = [*(stage(s) for s in stages), sig(FINALIZE, job_id, queue=TASK_QUEUES[FINALIZE])]
-    return chain(*steps)
+    for i, s in enumerate(stages):
+        if s in FANOUT_STAGES:
+            head = [sig(RUN_STAGE, job_id, x, queue=STAGE_QUEUES[x]) for x in stages[:i]]
+            return [*head, sig(FAN_OUT, job_id, s, list(stages[i + 1 :]), queue=STAGE_QUEUES[s])]
+    head = [sig(RUN_STAGE, job_id, x, queue=STAGE_QUEUES[x]) for x in stages]
+    return [*head, sig(FINALIZE, job_id, queue=TASK_QUEUES[FINALIZE])]
 
 
 class CeleryDispatcher:

@@ -1,6 +1,6 @@
 """EmbeddedDispatcher: the single-machine default (`midview serve`): one background thread of the API
 process runs the jobs one after the other, through the same workers.execute functions as the Celery
-tasks (stages in order; the match_views views one by one), with the same retry policy for transient
+tasks (stages in order; the units of a fan-out stage one by one), with the same retry policy for transient
 errors. A second thread delivers webhooks and runs the reconciler, which also resumes, at start, the
 jobs a previous process left queued or running.
 
@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from shared.job_options import FANOUT_STAGES
 from workers import execute
 
 log = logging.getLogger("midview.workers.embedded")
@@ -138,10 +139,10 @@ class EmbeddedDispatcher:
         try:
             stages = execute.job_stage_list(job_id, settings=self.settings, from_stage=from_stage)
             for stage in stages:
-                if stage == "match_views":
-                    views = self._call(job_id, execute.prepare_match_views, job_id)
-                    for view in views:
-                        self._call(job_id, execute.execute_match_view, job_id, view)
+                if stage in FANOUT_STAGES:
+                    units, _ = self._call(job_id, execute.prepare_fan_out, job_id, stage)
+                    for unit in units:
+                        self._call(job_id, execute.execute_unit, job_id, stage, unit)
                 self._call(job_id, execute.execute_stage, job_id, stage)
             stage = None
             self._call(job_id, execute.finalize, job_id)

@@ -6,11 +6,11 @@ brings the job folder on this machine up to date with storage (jobsync.materiali
 services.pipeline, and pushes what it produced:
 
 - execute_stage(job_id, stage): one pipeline stage;
-- prepare_match_views(job_id): the start of the match_views fan-out (feature cache of the candidate
-  images, once), returns the view names;
-- execute_match_view(job_id, view): one view of the fan-out (matches/VIEW.h5);
-- execute_stage(job_id, "match_views") after the fan-out: checks every view is matched (those already
-  matched are skipped), prunes matches of views no longer planned, writes the stage marker;
+- prepare_fan_out(job_id, stage): the start of a fan-out stage (services.pipeline.FanOut: the blocks'
+  plan of train_blocks, the feature cache of match_views, once), returns the unit names and their queue;
+- execute_unit(job_id, stage, unit): one unit of the fan-out (blocks/B/, matches/VIEW.h5);
+- execute_stage(job_id, stage) after the fan-out: checks every unit is done (those done are skipped),
+  summarises them, writes the stage marker;
 - finalize(job_id): the job succeeded (metrics from the stage markers) + webhook event;
 - fail(job_id, stage, error): the stage run and the job failed + webhook event.
 
@@ -422,27 +422,32 @@ def stage_dir(stage: str) -> str:
     return sd.dirs[0] if sd is not None and sd.dirs else stage
 
 
-def prepare_match_views(
-    job_id: str, *, settings: Any, worker: str | None = None, node: str | None = None
-) -> list[str]:
-    """Start of the match_views fan-out: open its stage run, extract the features of the candidate aerial
-    and ground images once (pushed, so that every view task reuses them), return the view names (none
-    when the stage is up to date)."""
+def prepare_fan_out(
+    job_id: str, stage: str, *, settings: Any, worker: str | None = None, node: str | None = None
+) -> tuple[list[str], str]:
+    """Start of a fan-out stage (services.pipeline.FanOut): open its stage run, do its preparation once
+    (pushed, so that every unit task reuses it), return (the unit names, their queue); no units when the
+    stage is up to date."""
     from services import pipeline
 
+    fan = pipeline.REGISTRY[stage].fanout
+    if fan is None:
+        raise ValueError(f"stage {stage} is not a fan-out stage")
     ctx = get_context(settings)
-    info = _begin(ctx, job_id, "match_views", worker, node=node)
+    info = _begin(ctx, job_id, stage, worker, node=node)
     try:
         job = _materialize(ctx, info)
         report = ProgressReporter(ctx, info)
-        if pipeline.is_done(job, "match_views"):  # nothing to fan out: the stage task will skip it
-            report("match_views", 0.0, "up to date")
-            return []
-        names = pipeline.view_names(job)
-        report("match_views", 0.0, f"extracting features for {len(names)} views")
-        pipeline.prepare_match_views(job)
-        _push(ctx, info, job, [job.features_path], "match_views.features")
-        return names
+        if pipeline.is_done(job, stage):  # nothing to fan out: the stage task will skip it
+            report(stage, 0.0, "up to date")
+            return [], fan.queue(job)
+        report(stage, 0.0, "preparing the units")
+        pipeline.check_inputs(job, stage)
+        files = fan.prepare(job)
+        _push(ctx, info, job, files, f"{stage}.prepare")
+        names = fan.units(job)
+        report(stage, 0.0, f"{len(names)} units to run")
+        return names, fan.queue(job)
     except JobStopped:
         _close_run(ctx, info.run_id, StageStatus.cancelled)
         raise
@@ -451,26 +456,36 @@ def prepare_match_views(
         raise
 
 
-def execute_match_view(job_id: str, view: str, *, settings: Any, worker: str | None = None) -> dict:
-    """One unit of the match_views fan-out: match view `view` (skipped when its match file is up to date)
-    and push matches/VIEW.h5."""
+def execute_unit(job_id: str, stage: str, unit: str, *, settings: Any, worker: str | None = None) -> dict:
+    """One unit of a fan-out stage (a block, a view; it returns at once when already done); pushes its
+    files and reports the stage's progress: the units done so far, and this one's own."""
     from services import pipeline
 
+    fan = pipeline.REGISTRY[stage].fanout
+    if fan is None:
+        raise ValueError(f"stage {stage} is not a fan-out stage")
     ctx = get_context(settings)
-    info = _begin(ctx, job_id, "match_views", worker, open_run=False)
+    info = _begin(ctx, job_id, stage, worker, open_run=False)
     job = _materialize(ctx, info)
-    if not job.features_path.is_file():  # the fan-out's preparation is missing: do it here
-        pipeline.prepare_match_views(job)
+    if not fan.ready(job):  # the preparation is missing here: do it
+        fan.prepare(job)
+    names = fan.units(job)
+    reporter = ProgressReporter(ctx, info)
+
+    def done() -> int:
+        folder = fan.marker(unit).split("/", 1)[0] + "/"
+        base = jobsync.files_key(info.prefix, "")
+        keys = {k[len(base) :] for k in ctx.storage.list(jobsync.files_key(info.prefix, folder))}
+        return sum(fan.marker(n) in keys for n in names)
+
+    before = done()
     t0 = time.perf_counter()
-    path = pipeline.match_view_unit(job, view)
+    paths = fan.unit(job, unit, lambda f, m: reporter(stage, (before + f) / max(len(names), 1), m))
     seconds = time.perf_counter() - t0
-    _push(ctx, info, job, [path], f"match_views.view.{view}")
-    names = pipeline.view_names(job)
-    done = {k.rsplit("/", 1)[-1][:-3] for k in ctx.storage.list(jobsync.files_key(info.prefix, "matches/"))}
-    ProgressReporter(ctx, info)(
-        "match_views", min(len(done & set(names)), len(names)) / max(len(names), 1), f"matched view {view}"
-    )
-    return {"view": view, "file": path.relative_to(job.root).as_posix(), "seconds": round(seconds, 2)}
+    _push(ctx, info, job, paths, f"{stage}.unit.{unit}")
+    reporter(stage, min(done(), len(names)) / max(len(names), 1), f"{unit} done")
+    files = [Path(p).relative_to(job.root).as_posix() for p in paths]
+    return {"stage": stage, "unit": unit, "files": files, "seconds": round(seconds, 2)}
 
 
 def _json_safe(value: Any) -> Any:
@@ -563,11 +578,11 @@ def job_stage_list(job_id: str, *, settings: Any, from_stage: str | None = None)
 
 __all__ = [
     "JobStopped",
-    "execute_match_view",
+    "execute_unit",
     "execute_stage",
     "fail",
     "finalize",
     "heartbeat",
     "is_transient",
-    "prepare_match_views",
+    "prepare_fan_out",
 ]

@@ -22,6 +22,7 @@ that every worker computes the same fingerprints.
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import json
 import logging
@@ -51,7 +52,8 @@ MANIFESTS_DIR = "manifests/"
 INPUTS = "inputs"
 CAMERAS_FILE = "cameras.json"  # optional object at project_prefix(...)/cameras.json: intrinsics per set
 # never pushed: the inputs (they come from the image rows), the links, local state, 3DGS checkpoints
-LOCAL_ONLY = (INPUTS, "images", "job.json", SYNC_FILE, "splat/ckpts")
+# (fnmatch patterns: a path at or under one is local)
+LOCAL_ONLY = (INPUTS, "images", "job.json", SYNC_FILE, "splat/ckpts", "blocks/*/ckpts")
 _TEMP_SUFFIXES = (".tmp", "-wal", "-shm", "-journal")
 _STABLE_EPOCH_S = 946_684_800  # 2000-01-01: inputs get a modification time derived from their content
 _THREADS = 8
@@ -341,7 +343,7 @@ def _local_only(rel: str) -> bool:
     name = rel.rsplit("/", 1)[-1]
     if name.startswith(".") or name.endswith(_TEMP_SUFFIXES):
         return True
-    return any(rel == p or rel.startswith(p + "/") for p in LOCAL_ONLY)
+    return any(fnmatch.fnmatchcase(rel, p) or fnmatch.fnmatchcase(rel, p + "/*") for p in LOCAL_ONLY)
 
 
 def local_files(root: Path, paths: Iterable[str | Path]) -> dict[str, Path]:

@@ -1,9 +1,10 @@
 """Celery tasks: thin wrappers over workers.execute with the service's error policy.
 
 - run_stage(job_id, stage): one pipeline stage (queue: STAGE_QUEUES[stage]);
-- fan_out_views(job_id, after): prepares match_views, then replaces itself by
-  chord([match_view(job_id, v) for each rendered view], chain(run_stage(match_views), *after, finalize));
-- match_view(job_id, view): one rendered view (queue cpu);
+- fan_out(job_id, stage, after): prepares a fan-out stage (train_blocks, match_views), then replaces
+  itself by chord([stage_unit(job_id, stage, u) for each unit], chain(run_stage(stage), canvas of after));
+- stage_unit(job_id, stage, unit): one unit of a fan-out stage (a block, a view; its queue set by the
+  fan-out: services.pipeline.FanOut.queue);
 - finalize(job_id): the job succeeded;
 - reconcile(), deliver_webhooks(): periodic (celery beat).
 
@@ -42,12 +43,11 @@ from workers import execute
 from workers.celery_app import (
     ALIVE_PATTERN,
     DELIVER_WEBHOOKS,
-    FAN_OUT_VIEWS,
+    FAN_OUT,
     FINALIZE,
-    MATCH_VIEW,
     RECONCILE,
     RUN_STAGE,
-    TASK_QUEUES,
+    STAGE_UNIT,
     TASKS_TTL_S,
     alive_key,
     app,
@@ -187,17 +187,14 @@ def stage_sig(job_id: str, stage: str) -> Any:
     return run_stage.si(job_id, stage).set(queue=STAGE_QUEUES[stage])
 
 
-def views_canvas(job_id: str, views: list[str], after: list[str]) -> Any:
-    """chord(one match_view per view) -> run_stage(match_views) -> the stages after -> finalize."""
-    body = chain(
-        stage_sig(job_id, "match_views"),
-        *[stage_sig(job_id, s) for s in after],
-        finalize.si(job_id).set(queue=TASK_QUEUES[FINALIZE]),
-    )
-    if not views:
+def fan_out_canvas(job_id: str, stage: str, units: list[str], queue: str, after: list[str]) -> Any:
+    """chord(one stage_unit per unit, on `queue`) -> run_stage(stage) -> the canvas of the stages after."""
+    from workers.dispatch import canvas_steps
+
+    body = chain(stage_sig(job_id, stage), *canvas_steps(app, job_id, after))
+    if not units:
         return body
-    header = [match_view.si(job_id, v).set(queue=TASK_QUEUES[MATCH_VIEW]) for v in views]
-    return chord(header, body)
+    return chord([stage_unit.si(job_id, stage, u).set(queue=queue) for u in units], body)
 
 
 # -- tasks ---------------------------------------------------------------------------------------
@@ -213,31 +210,28 @@ def run_stage(self: Any, job_id: str, stage: str) -> dict:
     )
 
 
-@app.task(bind=True, name=MATCH_VIEW)
-def match_view(self: Any, job_id: str, view: str) -> dict:
-    """One rendered view of the match_views fan-out."""
+@app.task(bind=True, name=STAGE_UNIT)
+def stage_unit(self: Any, job_id: str, stage: str, unit: str) -> dict:
+    """One unit of a fan-out stage (a block of train_blocks, a view of match_views)."""
     worker = f"{self.request.hostname}:{os.getpid()}"
     return _guarded(
-        self,
-        job_id,
-        "match_views",
-        lambda s: execute.execute_match_view(job_id, view, settings=s, worker=worker),
+        self, job_id, stage, lambda s: execute.execute_unit(job_id, stage, unit, settings=s, worker=worker)
     )
 
 
-@app.task(bind=True, name=FAN_OUT_VIEWS)
-def fan_out_views(self: Any, job_id: str, after: list[str]) -> Any:
-    """Prepare match_views (features of the candidate images, once), then replace this task by the
-    chord of the views followed by the stages `after` match_views and finalize."""
+@app.task(bind=True, name=FAN_OUT)
+def fan_out(self: Any, job_id: str, stage: str, after: list[str]) -> Any:
+    """Prepare a fan-out stage once (the blocks' plan, the matching features), then replace this task by
+    the chord of its units followed by the stage's own run and the stages `after` it."""
     worker, node = f"{self.request.hostname}:{os.getpid()}", self.request.hostname
-    views = _guarded(
+    units, queue = _guarded(
         self,
         job_id,
-        "match_views",
-        lambda s: execute.prepare_match_views(job_id, settings=s, worker=worker, node=node),
+        stage,
+        lambda s: execute.prepare_fan_out(job_id, stage, settings=s, worker=worker, node=node),
     )
-    log.info("job %s: fanning out %d views, then %s", job_id, len(views), ["match_views", *after])
-    raise self.replace(views_canvas(job_id, list(views), list(after)))
+    log.info("job %s: fanning out %d units of %s on %s, then %s", job_id, len(units), stage, queue, after)
+    raise self.replace(fan_out_canvas(job_id, stage, list(units), queue, list(after)))
 
 
 @app.task(bind=True, name=FINALIZE)
