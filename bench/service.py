@@ -34,6 +34,8 @@ WORKER_OPTIONS = {  # as tests/test_service_e2e.py: small enough for `tiny` on 2
     "views_per_ground_image": 1,
     "splat_steps": 1000,
     "splat_max_width": 240,
+    "block_steps": 300,
+    "block_px": 120,  # several blocks on `tiny` (one at the default 640 px): a fan-out to measure
     "max_keypoints": 1024,
     "seed": 0,
 }
@@ -220,7 +222,14 @@ class Stack:
         folder = self.tmp / f"worker{i}"
         folder.mkdir()
         log = folder / "worker.log"
-        env = {**self.env, "MIDVIEW_WORK_DIR": str(folder / "work"), "MIDVIEW_LOG_LEVEL": "INFO"}
+        # one worker process per core, as a deployment sizes its cpu workers: the numba rasterizer of a
+        # block single-threaded (by default it takes every core, and two workers would share them)
+        env = {
+            **self.env,
+            "MIDVIEW_WORK_DIR": str(folder / "work"),
+            "MIDVIEW_LOG_LEVEL": "INFO",
+            "NUMBA_NUM_THREADS": "1",
+        }
         args = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-Q", "gpu,cpu,reduce",
                 "-c", "1", "-P", "prefork", "-l", "INFO", "-n", f"mvbench{i}-{uuid.uuid4().hex[:6]}@%h",
                 "--without-gossip", "--without-mingle", "--without-heartbeat"]  # fmt: skip
@@ -455,6 +464,8 @@ def bench_workers(stack: Stack, base: str, headers: dict[str, str]) -> dict[str,
             if job["status"] != "succeeded":
                 raise RuntimeError(f"job with {workers} workers {job['status']}: {job.get('error')}")
             out[workers] = job["timings"].get("match_views")
+            out[f"blocks{workers}"] = job["timings"].get("train_blocks")
+            out[f"blocks{workers}_n"] = (job["metrics"].get("train_blocks") or {}).get("blocks")
             out[f"job{workers}_s"] = time.monotonic() - t0
     return out
 
@@ -596,6 +607,15 @@ def main() -> None:
                     ))  # fmt: skip
                 rows.append(("match_views 2 / 1 workers", f"x{w[2] / w[1]:.2f}", "time ratio (< 1: faster)"))
                 figures["match_views_speedup_2_workers"] = w[1] / w[2]
+                if w.get("blocks1") and w.get("blocks2"):
+                    for n in (1, 2):
+                        rows.append((
+                            f"train_blocks, {n} worker process{'es' if n > 1 else ''}",
+                            f"{w[f'blocks{n}']:.1f} s",
+                            f"{w[f'blocks{n}_n']} blocks of {WORKER_OPTIONS['block_steps']} steps",
+                        ))  # fmt: skip
+                    figures["blocks_speedup_2_workers"] = w["blocks1"] / w["blocks2"]
+                    figures["blocks"] = w["blocks1_n"]
             except Exception as e:  # noqa: BLE001 - reported in the table
                 rows.append(("match_views, 1 / 2 workers", "not measured", str(e).splitlines()[0][:200]))
     finally:

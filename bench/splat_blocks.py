@@ -55,6 +55,14 @@ def train_all(plan: Path, ids: list[str], model: Path, sparse: Path, images: Pat
                 os.environ[k] = v
 
 
+def commit() -> str:
+    import subprocess
+
+    return subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
+    ).stdout.strip()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sparse", type=Path, required=True)
@@ -66,6 +74,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--workers", default="2", help="comma-separated process counts (e.g. 1,2)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="blocks conf entry")
+    ap.add_argument("--blocks", type=int, default=0, help="train only the first N blocks (0: all)")
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
 
@@ -84,7 +93,7 @@ def main() -> None:
     plan["model"] = str(args.splat.resolve())
     plan_path = write_plan(plan, args.out / "plan.json")
     t_plan = time.perf_counter() - t0
-    ids = [b["id"] for b in plan["blocks"]]
+    ids = [b["id"] for b in plan["blocks"]][: args.blocks or None]
     runs = {}
     for w in [int(x) for x in args.workers.split(",")]:
         runs[w] = train_all(plan_path, ids, args.splat, args.sparse, args.images, args.out / f"w{w}", w)
@@ -103,14 +112,21 @@ def main() -> None:
             f"{d['gaussians']:>9}{d['psnr_before']:>12.2f}{d['psnr_after']:>7.2f}{d['seconds']:>6.0f}"
         )
     doc = {
-        "command": " ".join(sys.argv),
+        "command": "python " + " ".join(sys.argv),
+        "commit": commit(),
         "plan_seconds": t_plan,
         "runs": {str(k): v for k, v in runs.items()},
     }
     if len(runs) > 1:
         lo, hi = min(runs), max(runs)
-        doc["speedup"] = runs[lo]["seconds"] / runs[hi]["seconds"]
-        print(f"speedup {hi} workers against {lo}: {doc['speedup']:.2f}x")
+        doc["figures"] = {
+            "blocks": len(ids),
+            "steps_per_block": int(conf["train"]["steps"]),
+            f"seconds_{lo}_worker": runs[lo]["seconds"],
+            f"seconds_{hi}_workers": runs[hi]["seconds"],
+            f"speedup_{hi}_workers": runs[lo]["seconds"] / runs[hi]["seconds"],
+        }
+        print(f"speedup {hi} workers against {lo}: {doc['figures'][f'speedup_{hi}_workers']:.2f}x")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(doc, indent=1))

@@ -121,7 +121,10 @@ def run(
     ),
     splat_max_width: int = typer.Option(400, help="3DGS training image width"),
     block_steps: int = typer.Option(
-        600, help="3DGS steps of each block the views see, at the source resolution (0: no blocks)"
+        0, help="3DGS steps of each block the views see, at the source resolution (0: no blocks)"
+    ),
+    block_px: int = typer.Option(
+        640, help="block size in pixels of the aerial images at the source resolution"
     ),
     max_keypoints: int = typer.Option(1024, help="keypoints per image for matching"),
     seed: int = typer.Option(0, help="random seed"),
@@ -195,6 +198,7 @@ def run(
                 "splat_time_budget_s": splat_time_budget,
                 "splat_max_width": splat_max_width,
                 "block_steps": block_steps,
+                "block_px": block_px,
                 "max_keypoints": max_keypoints,
                 "seed": seed,
                 "out_crs": out_crs,

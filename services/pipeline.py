@@ -257,7 +257,8 @@ class Job:
         steps = max(1, int(self.options.block_steps))
         train = rescale_schedule(confs["default"]["train"], steps)
         train["ckpt_every"] = max(1, steps // 6)
-        return merge_conf(merge_conf(confs["default"], {"train": train}), self.settings["blocks"])
+        over = {"train": train, "block_px": int(self.options.block_px)}
+        return merge_conf(merge_conf(confs["default"], over), self.settings["blocks"])
 
     @property
     def uses_blocks(self) -> bool:
@@ -697,6 +698,10 @@ def finish_blocks(job: Job, names: list[str]) -> dict:
             shutil.rmtree(p)
     plan = json.loads((out / "plan.json").read_text())
     untrained = [{k: d[k] for k in ("id", "reason", "views")} for d in docs if not d["trained"]]
+    for d in untrained:
+        logger.warning(
+            "block %s not trained: %s (its views render from the whole-scene 3DGS)", d["id"], d["reason"]
+        )
     report = {
         "blocks": len(docs),
         "trained": sum(d["trained"] for d in docs),

@@ -250,3 +250,19 @@ def test_split_model_partitions_the_gaussians():
     assert bool(b.inside(own["means"]).all()) and not bool(b.inside(rest["means"]).any())
     grown, _ = split_model(m, b, b.margin)
     assert len(grown["means"]) > len(own["means"])
+
+
+def test_a_block_without_gaussians_ends_with_a_reason(survey, tmp_path):
+    """A cell the whole-scene model holds no Gaussian of (densification grows only from Gaussians): not
+    trained, with the reason, and not retried on a rerun."""
+    plan = json.loads(_plan(survey).read_text())
+    b = plan["blocks"][0]
+    b["lo"], b["hi"], b["margin"] = [50.0, 50.0, 0.0], [60.0, 60.0, 5.0], 0.0
+    path = write_plan(plan, tmp_path / "plan.json")
+    root = survey["root"]
+    args = (path, b["id"], root / "whole" / "point_cloud.ply", root / "sparse", root / "images", tmp_path)
+    doc = train_block(*args, backend="cpu")
+    assert not doc["trained"] and doc["reason"] == "the whole-scene 3DGS has no Gaussian in this block"
+    assert train_block(*args, backend="cpu") == doc
+    r = BlockRenderer(root / "whole" / "point_cloud.ply", tmp_path, backend="cpu")
+    assert b["id"] not in r.merged

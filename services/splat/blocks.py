@@ -392,9 +392,9 @@ def train_block(
         return doc
     digest = block_digest(plan, block, Path(model_path))
     done = folder / "block.json"
-    if done.is_file() and (folder / "point_cloud.ply").is_file():
+    if done.is_file():
         doc = json.loads(done.read_text())
-        if doc.get("digest") == digest:
+        if doc.get("digest") == digest and (not doc["trained"] or (folder / "point_cloud.ply").is_file()):
             return doc
     done.unlink(missing_ok=True)
     stamp = folder / "inputs.sha256"
@@ -404,6 +404,16 @@ def train_block(
     t0 = time.perf_counter()
     model = load_model(model_path)
     own, rest = split_model(model, block, block.margin)
+    if not len(own["means"]):  # nothing to refine (densification grows only from existing Gaussians)
+        doc = {
+            "id": block_id,
+            "trained": False,
+            "reason": "the whole-scene 3DGS has no Gaussian in this block",
+            "views": block.views,
+            "digest": digest,
+        }
+        (folder / "block.json").write_text(json.dumps(doc, indent=1))
+        return doc
     rec = pycolmap.Reconstruction(str(sparse))
     views = crop_views(block, rec, Path(images))
     rest = reaching(rest, views)
