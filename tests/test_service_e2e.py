@@ -317,7 +317,7 @@ def test_results_equal_the_local_run(service, first_run):
 
 
 def _kill_match_view_midway(redis_client, job_id: str, job_dir: Path, timeout_s: float) -> dict | None:
-    """SIGKILL the pool process running a match_view task of the job while it writes its match file
+    """SIGKILL the pool process running a match_views unit task of the job while it writes its match file
     (matches/VIEW.h5.tmp exists in the worker's job folder: past the sync, in the matching)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -325,12 +325,15 @@ def _kill_match_view_midway(redis_client, job_id: str, job_dir: Path, timeout_s:
         for key in redis_client.scan_iter("midview:task:*:alive", count=500):
             raw = redis_client.get(key)
             info = json.loads(raw) if raw else {}
-            if info.get("job") == job_id and info.get("task") == "midview.match_view":
+            unit = info.get("task") == "midview.stage_unit" and info.get("args", [None])[1:2] == [
+                "match_views"
+            ]
+            if info.get("job") == job_id and unit:
                 info["task_id"] = key.decode().split(":")[2]
                 running.append(info)
         while running and time.monotonic() < deadline:
             writing = {p.name[: -len(".h5.tmp")] for p in (job_dir / "matches").glob("*.h5.tmp")}
-            hit = [i for i in running if i["args"][1] in writing]
+            hit = [i for i in running if i["args"][2] in writing]
             if hit:
                 os.kill(int(hit[0]["pid"]), signal.SIGKILL)
                 hit[0]["killed_after_s"] = time.time() - hit[0]["started"]
@@ -344,7 +347,7 @@ def _kill_match_view_midway(redis_client, job_id: str, job_dir: Path, timeout_s:
 
 def test_killed_worker_process_mid_matching(service, first_run):
     """Rerun from match_views (its outputs deleted, so that every view is matched again) and SIGKILL the
-    pool process during a match_view task: the message is requeued (acks_late + reject_on_worker_lost),
+    pool process during a match_views unit task: the message is requeued (acks_late + reject_on_worker_lost),
     matched again by a new pool process, and the job ends with the same results as before."""
     import redis
 
@@ -377,7 +380,7 @@ def test_killed_worker_process_mid_matching(service, first_run):
     assert job["attempt"] == 2
     # the process died with the task unfinished; its message came back and succeeded in another process
     lost = log.find(f"pid:{killed['pid']} exited with 'signal 9 (SIGKILL)'")
-    done = log.find(f"Task midview.match_view[{killed['task_id']}] succeeded")
+    done = log.find(f"Task midview.stage_unit[{killed['task_id']}] succeeded")
     assert 0 <= lost < done, log[-5000:]
     assert [st["stage"] for st in job["stages"] if st["status"] == "succeeded"][-3:] == [
         "match_views", "reduce", "combined_sfm"]  # fmt: skip
