@@ -46,8 +46,8 @@ OPTIONS = {
     "views_per_ground_image": 1,
     "splat_steps": 1000,  # 300 gives views that match nothing at all
     "splat_max_width": 240,
-    "block_steps": 150,  # train_blocks: several blocks of 160 px on `tiny`, fanned out one task each
-    "block_px": 160,
+    "block_steps": 60,  # train_blocks: a few blocks of 240 px on `tiny`, fanned out one task each
+    "block_px": 240,
     "max_keypoints": 1024,
     "seed": 0,
 }
