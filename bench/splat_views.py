@@ -98,7 +98,7 @@ def main() -> None:
     for item in args.splat:
         label, _, path = item.partition("=")
         if (Path(path) / "plan.json").exists():  # trained blocks (bench/splat_blocks.py, a job's blocks/)
-            from services.splat.blocks import BlockRenderer
+            from services.views import BlockRenderer
 
             model = json.loads((Path(path) / "plan.json").read_text())["model"]
             models[label] = BlockRenderer(model, path, args.backend, 0.5)

@@ -284,7 +284,7 @@ class Job:
             raise ValueError(f"unknown renderer {self.settings['renderer']!r} (splat, gt)")
         min_alpha = self.settings["views"].get("min_alpha", 0.5)
         if blocks and self.uses_blocks and (self.dir("blocks") / "report.json").is_file():
-            from services.splat.blocks import BlockRenderer
+            from services.views import BlockRenderer
 
             return BlockRenderer(
                 self.dir("splat"), self.dir("blocks"), self.settings["splat_backend"], min_alpha

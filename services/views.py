@@ -74,6 +74,18 @@ class SplatRenderer:
         return rgb, depth
 
 
+class BlockRenderer(SplatRenderer):
+    """The whole-scene 3DGS merged with the blocks trained on it (services.splat.blocks.merge_blocks)."""
+
+    name = "splat-blocks"
+
+    def __init__(self, model_path: str | Path, blocks_dir: str | Path, backend: str = "auto", min_alpha=0.5):
+        from services.splat.blocks import merge_blocks
+
+        super().__init__(model_path, backend, min_alpha)
+        self.model, self.merged = merge_blocks(self.model, blocks_dir)
+
+
 # -- ground truth (tests, upper bound) -----------------------------------------------------------
 def _kabsch(src: np.ndarray, tgt: np.ndarray, scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
     """tgt ~ s R src + t (least squares)."""

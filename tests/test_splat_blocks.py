@@ -11,7 +11,6 @@ from services.colmap_model import Camera, write_model
 from services.splat.backend import rasterization
 from services.splat.blocks import (
     Block,
-    BlockRenderer,
     Crop,
     grid_cells,
     merge_blocks,
@@ -25,6 +24,7 @@ from services.splat.model import create_splats
 from services.splat.ply import load_ply, save_ply
 from services.splat.render import look_at, render
 from services.splat.synthetic import random_scene
+from services.views import BlockRenderer
 
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
 

@@ -3,7 +3,8 @@
     plan = plan_blocks(confs["default"], model, rec, views)      # blocks from the planned views
     write_plan(plan, "job/blocks/plan.json")
     train_block(plan, "b00", model_path, rec, images, "job/blocks")  # one unit of work per block
-    renderer = BlockRenderer(model_path, "job/blocks")             # each camera from the block that sees it
+    merged, ids = merge_blocks(load_model(model_path), "job/blocks")  # what the views render from
+                                                                    # (services.views.BlockRenderer)
 
 The whole-scene model, trained on downscaled aerial images, smears where the intermediate views look:
 they stand two to four times nearer the facades than the aerial cameras. As in VastGaussian and
@@ -471,7 +472,7 @@ def trainer_psnr(trainer, splats: dict | None = None) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
-# -- merging and rendering ---------------------------------------------------------------------
+# -- merging ---------------------------------------------------------------------
 def merge_blocks(model: dict[str, torch.Tensor], blocks_dir: str | Path) -> tuple[dict, list[str]]:
     """The whole-scene `model` with each trained block's Gaussians inside its cell in place of its own
     there (VastGaussian's merge); returns (the merged model, the ids of the blocks merged)."""
@@ -490,19 +491,3 @@ def merge_blocks(model: dict[str, torch.Tensor], blocks_dir: str | Path) -> tupl
         parts.append({k: v.detach()[sel] for k, v in own.items()})
     merged = {k: torch.cat([v.detach()[keep], *(p[k] for p in parts)]) for k, v in model.items()}
     return merged, [b.id for b in trained]
-
-
-class BlockRenderer:
-    """Renders from the whole-scene model merged with the trained blocks (`merge_blocks`)."""
-
-    name = "splat-blocks"
-
-    def __init__(self, model_path: str | Path, blocks_dir: str | Path, backend: str = "auto", min_alpha=0.5):
-        self.model, self.merged = merge_blocks(load_model(model_path), blocks_dir)
-        self.backend, self.min_alpha = backend, float(min_alpha)
-
-    def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
-        out = render(self.model, camera, pose, backend=self.backend)
-        rgb = np.clip(np.rint(out["color"] * 255.0), 0, 255).astype(np.uint8)
-        depth = np.where(out["alpha"] >= self.min_alpha, out["depth"], 0.0).astype(np.float32)
-        return rgb, depth
