@@ -250,11 +250,11 @@ def baseline_reconstruction(job, label: str, match_file: Path, match_conf: dict,
     """The combined reconstruction with a direct baseline's matches, by the same procedure as midview's:
     PnP seeds from its matches (aerial keypoints lifted with the aerial model's points), then
     services.combined_sfm. Returns the model folder."""
-    from services import combined_sfm, transfer
+    from services import combined_sfm, reduce
     from services.matching.views import feature_conf
 
     tdir = out_dir / f"{match_file.stem}-pnp"
-    transfer.localize_direct(
+    reduce.localize_direct(
         job.transfer_conf(),
         match_file,
         job.dir("sfm") / "sparse",

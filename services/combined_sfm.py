@@ -84,7 +84,7 @@ default_conf: dict[str, Any] = {
     # the bundle adjustment's covariance, pixel noise at least 1 px: services.pose_uncertainty.
     # joint_position_stds; None: kept), or when their pose disagrees with their POS (the reducer's limits)
     "max_position_std_m": 0.5,
-    "pos_limits": None,  # those POS limits: the reducer's conf["pnp"] (None: services.transfer's defaults)
+    "pos_limits": None,  # those POS limits: the reducer's conf["pnp"] (None: services.reduce's defaults)
     "mapping": {
         "min_num_matches": 15,  # pairs with fewer matches are ignored by the mapper
         "abs_pose_min_num_inliers": 15,
@@ -292,11 +292,11 @@ def main(
     from services import features as features_mod
     from services.matching import direct
     from services.pos import read_pos
+    from services.reduce import default_conf as transfer_default_conf
+    from services.reduce import ground_priors
     from services.sfm import georef as georef_mod
     from services.sfm.aerial import colmap_log_level
     from services.sfm.georef import read_georef_frame
-    from services.transfer import default_conf as transfer_default_conf
-    from services.transfer import ground_priors
     from shared.matchfile import MatchFile
 
     conf = merge_conf(default_conf, conf)
@@ -647,14 +647,14 @@ def drop_ill_determined(
 ) -> dict[str, str]:
     """Deregister the ground images the mapper registered (not those of `fixed`, held at the reducer's
     PnP pose) whose pose disagrees with their POS (with `priors` and `pnp_conf`, the reducer's POS
-    limits, services.transfer: a repeated facade can register an image far from where it was taken), or
+    limits, services.reduce: a repeated facade can register an image far from where it was taken), or
     whose centre the model determines worse than `max_std` metres: the standard deviation along the
     worst direction from the covariance of the model's bundle adjustment with the other images held
     (services.pose_uncertainty.joint_position_stds), so a run of ground images tied by their own points
     but placed by a few ill-spread aerial points is judged by those. Dropping an image can leave the
     others less determined: repeated until none is dropped. Returns {name: reason}."""
     from services.pose_uncertainty import fit_position_std, joint_position_stds
-    from services.transfer import prior_agreement
+    from services.reduce import prior_agreement
 
     def candidates() -> list[pycolmap.Image]:
         return [

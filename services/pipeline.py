@@ -65,7 +65,7 @@ DEFAULT_SETTINGS: dict[str, Any] = {
     "viewpoints": {},  # overrides of services.viewpoints confs
     "views": {},  # services.views conf
     "matching": {},  # overrides of services.matching.views confs (e.g. resize_max)
-    "transfer": {},  # overrides of services.transfer.default_conf
+    "transfer": {},  # overrides of services.reduce.default_conf
     "combined": {},  # overrides of services.combined_sfm.default_conf
 }
 
@@ -236,9 +236,9 @@ class Job:
         )
 
     def transfer_conf(self) -> dict:
-        from services import transfer
+        from services import reduce
 
-        return merge_conf(transfer.default_conf, self.settings["transfer"])
+        return merge_conf(reduce.default_conf, self.settings["transfer"])
 
     def combined_conf(self) -> dict:
         from services import combined_sfm
@@ -723,11 +723,11 @@ def blocks_queue(job: Job) -> str:
 
 
 def _reduce(job: Job, report) -> dict:
-    from services import transfer
+    from services import reduce
 
     report(0.0, "transferring matches")
     files = sorted(job.dir("matches").glob("*.h5"))
-    transfer.main(
+    reduce.main(
         job.transfer_conf(),
         job.dir("views") / "views.json",
         files,

@@ -113,7 +113,7 @@ _BASE: dict[str, Any] = {
         "fov_scale": 1.0,  # > 1 widens the field of view (focal length divided by it)
         "occlusion_ratio": 0.85,  # occluded: the view's depth towards the target is below this x its distance
         # keep views that no aerial image is a candidate of: the reducer's "3d" links reach their render
-        # keypoints through the aerial points of the other views (services.transfer)
+        # keypoints through the aerial points of the other views (services.reduce)
         "keep_without_aerial": True,
         # with a depth probe: a view must see at least this fraction of the surface the ground camera sees
         # from its POS pose (probed `covisibility_width` pixels wide; 0: unchecked; when no placement does,

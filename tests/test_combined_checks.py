@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
-from services import transfer
+from services import reduce as transfer
 from services.colmap_model import Camera, Pose
 from services.conf import merge_conf
 from services.viewpoints import look_at

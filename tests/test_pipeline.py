@@ -190,7 +190,7 @@ def test_the_reducer_counts_the_pnp_inliers_on_trusted_rendered_depth(tiny_job, 
     assert not rests_on_trusted_depth({"num_inliers": 0, "trusted_depth_inliers": 0}, conf)
     assert not rests_on_trusted_depth({"num_inliers": 40}, conf)  # reducer output before this count
     # with the rendered depth unused, no inlier rests on it
-    from services import transfer
+    from services import reduce as transfer
 
     conf = {**job.transfer_conf(), "pnp": {**job.transfer_conf()["pnp"], "depth_points": False}}
     transfer.main(

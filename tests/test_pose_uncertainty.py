@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from services import transfer
+from services import reduce as transfer
 from services.colmap_model import Camera, Pose
 from services.conf import merge_conf
 from services.pose_uncertainty import fit_position_std, position_std, projection_jacobian
@@ -66,12 +66,12 @@ def test_the_reducer_rejects_a_pose_its_inliers_leave_undetermined():
     conf = merge_conf(transfer.default_conf, {"pnp": {"min_spread": 0.0}})  # only the new check
     kp, X = _points(rng, (430, 600), (300, 440), depth=FACADE)
     r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), conf)
-    assert r["num_inliers"] >= 58 and r["position_std_m"] > conf["pnp"]["max_position_std_m"]
-    assert not r["accepted"] and "ill-determined" in r["reason"]
+    assert r.num_inliers >= 58 and r.position_std_m > conf["pnp"]["max_position_std_m"]
+    assert not r.accepted and "ill-determined" in r.reason
     kp, X = _points(rng, (50, 970), (50, 720))
     r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), conf)
-    assert r["accepted"] and r["position_std_m"] < 0.1
-    assert np.linalg.norm(np.asarray(r["center"]) - POSE.center) < 0.05
+    assert r.accepted and r.position_std_m < 0.1
+    assert np.linalg.norm(np.asarray(r.center) - POSE.center) < 0.05
 
 
 def test_fit_std_takes_its_pixel_noise_from_the_residuals():
@@ -91,7 +91,7 @@ def test_a_consensus_of_few_inliers_verifies_matches_but_gives_no_pose():
     rng = np.random.default_rng(5)
     kp, X = _points(rng, (50, 970), (50, 720), n=15)
     r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), transfer.default_conf)
-    assert r["consensus"] and r["num_inliers"] == 15 and r["position_std_m"] < 0.25
-    assert not r["accepted"] and "too few for a pose" in r["reason"]
+    assert r.consensus and r.num_inliers == 15 and r.position_std_m < 0.25
+    assert not r.accepted and "too few for a pose" in r.reason
     kp, X = _points(rng, (50, 970), (50, 720), n=25)
-    assert transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), transfer.default_conf)["accepted"]
+    assert transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), transfer.default_conf).accepted

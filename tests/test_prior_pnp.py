@@ -7,7 +7,7 @@ import copy
 
 import numpy as np
 
-from services import transfer
+from services import reduce as transfer
 from services.colmap_model import Camera
 from services.prior_pnp import prior_gated_pnp, reprojection_errors
 from services.viewpoints import look_at
@@ -56,22 +56,22 @@ def test_gated_ransac_finds_the_pose_the_prior_allows():
 def test_reducer_pnp_falls_back_to_the_gated_ransac():
     kp, X, n_true = _correspondences(seed=1)
     r = transfer.estimate_ground_pose(kp, X, CAM, TRUE, STD, transfer.default_conf)
-    assert r["accepted"], r["reason"]
-    assert r["solver"] == "prior-gated"
-    assert np.linalg.norm(np.asarray(r["center"]) - TRUE.center) < 0.1
-    assert r["num_inliers"] == n_true
+    assert r.accepted, r.reason
+    assert r.solver == "prior-gated"
+    assert np.linalg.norm(np.asarray(r.center) - TRUE.center) < 0.1
+    assert r.num_inliers == n_true
     # without the gated RANSAC the most-inliers pose (the wrong facade) is found and rejected by the POS
     conf = copy.deepcopy(transfer.default_conf)
     conf["pnp"]["prior_gated"] = False
     plain = transfer.estimate_ground_pose(kp, X, CAM, TRUE, STD, conf)
-    assert not plain["accepted"] and "from the POS" in plain["reason"]
-    assert plain["solver"] == "pycolmap"
+    assert not plain.accepted and "from the POS" in plain.reason
+    assert plain.solver == "pycolmap"
 
 
 def test_a_pose_that_agrees_with_the_pos_keeps_the_plain_ransac():
     kp, X, n_true = _correspondences(seed=2, n_wrong=10)
     r = transfer.estimate_ground_pose(kp, X, CAM, TRUE, STD, transfer.default_conf)
-    assert r["accepted"] and r["solver"] == "pycolmap"
+    assert r.accepted and r.solver == "pycolmap"
 
 
 def test_depth_is_trusted_per_view_or_by_the_renderer():

@@ -1,11 +1,11 @@
-"""The reducer (services/transfer.py) on hand-made match tables and on a constructed 3D scene."""
+"""The reducer (services/reduce/) on hand-made match tables and on a constructed 3D scene."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from services import transfer
+from services import reduce as transfer
 from services.colmap_model import Camera, Pose
 from services.pos import ypr_to_matrix
 from shared.matchfile import MatchFile, PairMatches
@@ -268,7 +268,7 @@ def test_a_clustered_consensus_verifies_matches_but_gives_no_pose():
     kp = np.stack([rng.uniform(300, 340, 40), rng.uniform(220, 250, 40)], 1)  # 40 x 30 px of 640 x 480
     X = pose.unproject(CAM.K, kp, rng.uniform(18.0, 22.0, 40))
     r = transfer.estimate_ground_pose(kp, X, CAM, pose, (2.5, 4.0, 2.0), transfer.default_conf)
-    assert not r["accepted"] and "cover" in r["reason"]
-    assert r["consensus"] and r["num_inliers"] >= 38
+    assert not r.accepted and "cover" in r.reason
+    assert r.consensus and r.num_inliers >= 38
     few = transfer.estimate_ground_pose(kp[:8], X[:8], CAM, pose, (2.5, 4.0, 2.0), transfer.default_conf)
-    assert not few["accepted"] and not few.get("consensus")
+    assert not few.accepted and not few.consensus

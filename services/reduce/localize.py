@@ -1,0 +1,317 @@
+"""Step 4 of the reducer: each ground image localized by PnP (pycolmap LO-RANSAC and refinement) on its
+2D-3D correspondences, with its POS as a prior (position and attitude within `prior_sigmas` standard
+deviations or the absolute floors, and jointly), and the matches that agree with the pose verified."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.colmap_model import Camera, Pose
+from services.geometry import rotation_angle_deg
+from services.pos import DEFAULT_STD_ATT, DEFAULT_STD_XY, DEFAULT_STD_Z
+from services.pose_uncertainty import fit_position_std
+from services.prior_pnp import prior_gated_pnp, reprojection_errors
+from services.reduce.merge import Pairs
+from services.reduce.observations import image_set
+
+logger = logging.getLogger("midview.reduce")
+
+PosStd = tuple[float, float, float]  # horizontal (m), vertical (m), attitude (deg)
+
+
+@dataclass
+class PoseEstimate:
+    """One ground image's PnP pose and its checks. `pose`, `inliers` (correspondences within keep_px of
+    it) and `errors` (their reprojection errors, px) are None when no pose was found; `accepted` when
+    every check passed (else `reason` says why); `consensus` when enough correspondences agree on one
+    camera to verify matches even if the pose itself is not accepted."""
+
+    num_correspondences: int
+    accepted: bool = False
+    reason: str = ""
+    solver: str | None = None
+    pose: Pose | None = None
+    inliers: np.ndarray | None = None
+    errors: np.ndarray | None = None
+    position_std_m: float | None = None
+    inlier_spread: float | None = None
+    consensus: bool = False
+    to_pos: dict[str, float] | None = None
+    limits: dict[str, float] | None = None
+    trusted_depth_inliers: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_inliers(self) -> int:
+        return 0 if self.inliers is None else int(self.inliers.sum())
+
+    @property
+    def inlier_ratio(self) -> float:
+        return 0.0 if self.inliers is None or len(self.inliers) == 0 else float(self.inliers.mean())
+
+    @property
+    def center(self) -> list[float] | None:
+        return None if self.pose is None else self.pose.center.tolist()
+
+    def verifies(self, pc: dict) -> bool:
+        """Whether matches may be checked against this pose: accepted, or a consensus (when allowed)."""
+        return self.pose is not None and (self.accepted or bool(pc["verify_on_consensus"] and self.consensus))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON record of ground_poses.json and the reports."""
+        d: dict[str, Any] = {"num_correspondences": self.num_correspondences, "accepted": self.accepted}
+        d["reason"] = self.reason
+        if self.pose is not None:
+            d.update(
+                solver=self.solver,
+                R=self.pose.R.tolist(),
+                t=self.pose.t.tolist(),
+                center=self.center,
+                num_inliers=self.num_inliers,
+                inlier_ratio=self.inlier_ratio,
+                consensus=self.consensus,
+            )
+        for k in ("position_std_m", "inlier_spread", "to_pos", "limits", "trusted_depth_inliers"):
+            if getattr(self, k) is not None:
+                d[k] = getattr(self, k)
+        return {**d, **self.extra}
+
+
+def prior_chi2(dxy: float, dz: float, drot: float, std: tuple[float, float, float], pc: dict) -> float:
+    """Squared normalized difference of a pose to its POS: horizontal (m), vertical (m) and rotation
+    (deg) over their standard deviations, each at least its floor (min_position_m etc.) / prior_sigmas."""
+    k = pc["prior_sigmas"]
+    sxy = max(std[0], pc["min_position_m"] / (k * math.sqrt(2.0)))
+    sz = max(std[1], pc["min_height_m"] / k)
+    satt = max(std[2], pc["min_rotation_deg"] / (k * math.sqrt(3.0)))
+    return float((dxy / sxy) ** 2 + (dz / sz) ** 2 + (drot / satt) ** 2)
+
+
+def prior_agreement(
+    pose: Pose, prior: Pose, prior_std: tuple[float, float, float] | None, pc: dict
+) -> tuple[dict, dict, list[str]]:
+    """How far `pose` is from its POS `prior`: (differences, limits, reasons it disagrees). Position and
+    attitude each within prior_sigmas standard deviations (or the floors), and jointly (chi-square)."""
+    d = pose.center - prior.center
+    dxy, dz = float(np.linalg.norm(d[:2])), float(abs(d[2]))
+    drot = rotation_angle_deg(pose.R @ prior.R.T)
+    sxy, sz, satt = prior_std or (DEFAULT_STD_XY, DEFAULT_STD_Z, DEFAULT_STD_ATT)
+    k = pc["prior_sigmas"]
+    lim_xy, lim_z = max(k * sxy * math.sqrt(2.0), pc["min_position_m"]), max(k * sz, pc["min_height_m"])
+    lim_rot = max(k * satt * math.sqrt(3.0), pc["min_rotation_deg"])
+    chi2 = prior_chi2(dxy, dz, drot, (sxy, sz, satt), pc)
+    to_pos = {"horizontal_m": dxy, "vertical_m": dz, "rotation_deg": drot, "chi2": chi2}
+    limits = {"horizontal_m": lim_xy, "vertical_m": lim_z, "rotation_deg": lim_rot}
+    reasons = []
+    if dxy > lim_xy:
+        reasons.append(f"{dxy:.1f} m from the POS horizontally (> {lim_xy:.1f})")
+    if dz > lim_z:
+        reasons.append(f"{dz:.1f} m from the POS vertically (> {lim_z:.1f})")
+    if drot > lim_rot:
+        reasons.append(f"{drot:.1f} deg from the POS attitude (> {lim_rot:.1f})")
+    if pc.get("prior_chi2") and chi2 > pc["prior_chi2"]:
+        reasons.append(f"position and attitude jointly {chi2:.1f} (chi-square > {pc['prior_chi2']:.1f})")
+    return to_pos, limits, reasons
+
+
+def _solve_pnp(
+    kp: np.ndarray, X: np.ndarray, camera: Camera, prior: Pose | None, prior_std: PosStd | None, pc: dict
+) -> tuple[Pose | None, str]:
+    """(pose, solver): pycolmap's LO-RANSAC pose; when it disagrees with the POS (and prior_gated), the
+    best pose of a second RANSAC that keeps only hypotheses agreeing with it (services.prior_pnp)."""
+    import pycolmap
+
+    opts = pycolmap.AbsolutePoseEstimationOptions()
+    opts.ransac.max_error = float(pc["ransac_px"])
+    opts.ransac.random_seed = int(pc["seed"])
+    opts.ransac.min_inlier_ratio = 0.05
+    opts.ransac.max_num_trials = 20000
+    try:
+        out = pycolmap.estimate_and_refine_absolute_pose(
+            np.ascontiguousarray(kp, np.float64),
+            np.ascontiguousarray(X, np.float64),
+            camera.to_pycolmap(1),
+            opts,
+        )
+    except Exception as e:  # pycolmap raises on degenerate input
+        out = None
+        logger.debug("PnP failed: %s", e)
+    pose = None
+    if out is not None:
+        m = np.asarray(out["cam_from_world"].matrix())
+        pose = Pose(m[:, :3].copy(), m[:, 3].copy())
+    disagrees = pose is None or (prior is not None and bool(prior_agreement(pose, prior, prior_std, pc)[2]))
+    if prior is not None and pc["prior_gated"] and disagrees:
+
+        def gate(p: Pose) -> bool:
+            return not prior_agreement(p, prior, prior_std, pc)[2]
+
+        gated, _ = prior_gated_pnp(kp, X, camera.K, gate, pc["ransac_px"], seed=int(pc["seed"]))
+        if gated is not None:
+            return gated, "prior-gated"
+    return pose, "pycolmap"
+
+
+def _inlier_checks(est: PoseEstimate, kp: np.ndarray, X: np.ndarray, camera: Camera, pc: dict) -> list[str]:
+    """Why the inliers of est do not make an accepted pose (none: they do): how well they pin the camera
+    centre, how much of the image they cover, how many there are and their ratio. Sets est's
+    position_std_m, inlier_spread and consensus."""
+    inl = est.inliers
+    reasons = []
+    if inl.sum() >= 3:  # pixel noise: their RMS residual, at least 1 px
+        std = fit_position_std(est.pose, camera.K, kp[inl], X[inl])
+        est.position_std_m = std
+        if pc.get("max_position_std_m") and std > pc["max_position_std_m"]:
+            reasons.append(
+                f"position ill-determined by its inliers: std {std:.2f} m (> {pc['max_position_std_m']})"
+            )
+    if inl.any():
+        span = kp[inl].max(0) - kp[inl].min(0)
+        est.inlier_spread = float(span[0] * span[1] / (camera.width * camera.height))
+        if est.inlier_spread < pc.get("min_spread", 0.0):
+            reasons.append(
+                f"inliers cover {100 * est.inlier_spread:.1f}% of the image (< {100 * pc['min_spread']:.0f}%)"
+            )
+    n = int(inl.sum())
+    if n < pc["min_inliers"]:
+        reasons.append(f"{n} inliers (< {pc['min_inliers']})")
+    elif n < pc.get("min_pose_inliers", 0):
+        reasons.append(f"{n} inliers verify matches but are too few for a pose (< {pc['min_pose_inliers']})")
+    if inl.mean() < pc["min_inlier_ratio"]:
+        reasons.append(f"inlier ratio {inl.mean():.2f} (< {pc['min_inlier_ratio']})")
+    # enough correspondences agree on one camera: they verify the matches even where the pose itself is
+    # ill-determined (clustered or planar points) and fails the spread check above or the POS checks
+    est.consensus = bool(n >= pc["min_inliers"] and inl.mean() >= pc["min_inlier_ratio"])
+    return reasons
+
+
+def estimate_ground_pose(
+    kp: np.ndarray,
+    X: np.ndarray,
+    camera: Camera,
+    prior: Pose | None,
+    prior_std: PosStd | None,
+    conf: dict,
+) -> PoseEstimate:
+    """PnP LO-RANSAC of one ground image (keypoints kp (n, 2), points X (n, 3)) with its POS as a prior."""
+    pc = conf["pnp"]
+    est = PoseEstimate(num_correspondences=int(len(kp)))
+    if len(kp) < max(pc["min_inliers"], 4):
+        est.reason = f"{len(kp)} correspondences (< {pc['min_inliers']})"
+        return est
+    pose, solver = _solve_pnp(kp, X, camera, prior, prior_std, pc)
+    if pose is None:
+        est.reason = "PnP RANSAC found no pose"
+        return est
+    est.pose, est.solver = pose, solver
+    est.errors = reprojection_errors(pose, camera.K, kp, X)
+    est.inliers = est.errors <= pc["keep_px"]
+    reasons = _inlier_checks(est, kp, X, camera, pc)
+    if prior is not None:
+        est.to_pos, est.limits, prior_reasons = prior_agreement(pose, prior, prior_std, pc)
+        reasons += prior_reasons
+    est.accepted = not reasons
+    est.reason = "; ".join(reasons) if reasons else "ok"
+    return est
+
+
+def trusted_depth_views(view_names: list[str], depth_error: dict[str, float], pc: dict) -> list[int]:
+    """Indices of the views whose rendered depth lifts ground matches to 3D: median relative difference
+    to their triangulated aerial points <= depth_trust. A view without aerial points to measure (a low
+    view that matches only the ground image) is trusted when the renderer is: the median over the
+    measured views (at least min_trust_views of them) is within depth_trust."""
+    tol = pc["depth_trust"]
+    measured = list(depth_error.values())
+    renderer_ok = len(measured) >= pc["min_trust_views"] and float(np.median(measured)) <= tol
+    return [
+        i for i, n in enumerate(view_names) if (depth_error[n] <= tol if n in depth_error else renderer_ok)
+    ]
+
+
+def ground_priors(
+    pos: str | Path | list, georef: str | Path
+) -> tuple[dict[str, Pose], dict[str, tuple[float, float, float]]]:
+    """Ground POS poses in the aerial model frame and their standard deviations."""
+    from services.pos import read_pos
+    from services.sfm.georef import read_georef_frame
+    from services.viewpoints import pos_in_frame
+
+    records = read_pos(pos) if isinstance(pos, str | Path) else list(pos)
+    frame = read_georef_frame(georef)
+    poses, std = {}, {}
+    for n, (pose, _, r) in pos_in_frame(records, frame).items():
+        if image_set(n) != "ground" or pose is None:
+            continue
+        poses[n] = pose
+        std[n] = r.std_or_default()
+    return poses, std
+
+
+def _correspondences(
+    g: str, merged: Pairs, og: dict[str, np.ndarray], depth_points: bool | str, trusted_views: list[int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ground keypoint indices, 3D points, whether from a trusted view's rendered depth) of ground image
+    g: its merged links' points and, with depth_points, its render matches lifted by the rendered depth
+    (only the trusted views' with "trusted"); one point per ground keypoint, the best-scored."""
+    keys = [k for k in merged if k[1] == g]
+    ig = np.concatenate([merged[k]["ig"] for k in keys]) if keys else np.zeros(0, np.int64)
+    X = np.concatenate([merged[k]["X"] for k in keys]) if keys else np.zeros((0, 3))
+    sc = np.concatenate([merged[k]["score"] for k in keys]) if keys else np.zeros(0, np.float32)
+    from_depth = np.zeros(len(ig), bool)
+    if depth_points:
+        has_x = np.isfinite(og["X"]).all(1)
+        trusted = np.isin(og["view"], trusted_views)
+        if depth_points == "trusted":
+            has_x &= trusted
+        ig = np.concatenate([ig, og["i"][has_x]])
+        X = np.concatenate([X, og["X"][has_x]])
+        sc = np.concatenate([sc, og["score"][has_x]])
+        from_depth = np.concatenate([from_depth, trusted[has_x]])
+    order = np.lexsort((-sc.astype(np.float64), ig))
+    first = np.ones(len(order), bool)
+    first[1:] = ig[order][1:] != ig[order][:-1]
+    sel = order[first]
+    return ig[sel], X[sel], from_depth[sel]
+
+
+def localize_grounds(
+    merged: Pairs,
+    obs: dict[str, dict[str, np.ndarray]],
+    keypoints: dict[str, np.ndarray],
+    ground_camera: Camera,
+    priors: dict[str, Pose],
+    prior_std: dict[str, PosStd],
+    depth_error: dict[str, float],
+    view_names: list[str],
+    conf: dict,
+) -> tuple[dict[str, PoseEstimate], dict[tuple[str, str], np.ndarray]]:
+    """(pose per ground image, verified mask per pair): PnP of each ground image on its correspondences
+    (pnp.depth_points: also its render matches lifted by the rendered depth, of the trusted views only
+    when "trusted"), then its pairs' matches within keep_px of the pose, or all of them (unverified
+    "fundamental") or none where the pose cannot verify them."""
+    pc = conf["pnp"]
+    trusted = trusted_depth_views(view_names, depth_error, pc) if pc["depth_points"] else []
+    poses: dict[str, PoseEstimate] = {}
+    verified: dict[tuple[str, str], np.ndarray] = {}
+    for g in sorted(n for n in obs if image_set(n) == "ground"):
+        ig, X, from_depth = _correspondences(g, merged, obs[g], pc["depth_points"], trusted)
+        kp = keypoints[g][ig].astype(np.float64)
+        est = estimate_ground_pose(kp, X, ground_camera, priors.get(g), prior_std.get(g), conf)
+        if est.inliers is not None:  # inliers whose 3D point is the rendered depth of a view trusted for it
+            est.trusted_depth_inliers = int((from_depth & est.inliers).sum())
+        poses[g] = est
+        for key in (k for k in merged if k[1] == g):
+            m = merged[key]
+            if est.verifies(pc):
+                uv, z = est.pose.project(ground_camera.K, m["X"])
+                err = np.where(z > 0, np.linalg.norm(uv - keypoints[g][m["ig"]], axis=1), np.inf)
+                verified[key] = err <= pc["keep_px"]
+            else:
+                verified[key] = np.full(len(m["ia"]), conf["unverified"] == "fundamental")
+    return poses, verified
