@@ -249,9 +249,10 @@ def run(
 def baseline_reconstruction(job, label: str, match_file: Path, match_conf: dict, out_dir: Path) -> Path:
     """The combined reconstruction with a direct baseline's matches, by the same procedure as midview's:
     PnP seeds from its matches (aerial keypoints lifted with the aerial model's points), then
-    services.combined_sfm. Returns the model folder."""
-    from services import combined_sfm, reduce
+    services.sfm.combined. Returns the model folder."""
+    from services import reduce
     from services.matching.views import feature_conf
+    from services.sfm import combined as combined_sfm
 
     tdir = out_dir / f"{match_file.stem}-pnp"
     reduce.localize_direct(

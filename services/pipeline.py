@@ -66,7 +66,7 @@ DEFAULT_SETTINGS: dict[str, Any] = {
     "views": {},  # services.views conf
     "matching": {},  # overrides of services.matching.views confs (e.g. resize_max)
     "transfer": {},  # overrides of services.reduce.default_conf
-    "combined": {},  # overrides of services.combined_sfm.default_conf
+    "combined": {},  # overrides of services.sfm.combined.default_conf
 }
 
 
@@ -241,7 +241,7 @@ class Job:
         return merge_conf(reduce.default_conf, self.settings["transfer"])
 
     def combined_conf(self) -> dict:
-        from services import combined_sfm
+        from services.sfm import combined as combined_sfm
 
         conf = merge_conf(combined_sfm.default_conf, self.settings["combined"])
         if conf["pos_limits"] is None:  # the same POS limits as the reducer's poses
@@ -747,9 +747,9 @@ def _reduce(job: Job, report) -> dict:
 
 
 def combined_reconstruction(job: Job, out_dir: Path, report=None) -> Path:
-    """services.combined_sfm on the job's aerial model, reducer output and features, into out_dir
+    """services.sfm.combined on the job's aerial model, reducer output and features, into out_dir
     (the stage's folder, or another one); returns the model folder."""
-    from services import combined_sfm
+    from services.sfm import combined as combined_sfm
 
     return combined_sfm.main(
         job.combined_conf(),

@@ -1,4 +1,4 @@
-"""Checks of the combined reconstruction's database and model (services.combined_sfm): its ground-ground
+"""Checks of the combined reconstruction's database and model (services.sfm.combined): its ground-ground
 pairs, with their two-view geometries, are a database COLMAP's own mapper reconstructs the ground images
 from; ground images the mapper registers far from their POS are dropped."""
 
@@ -28,10 +28,10 @@ def _street(n: int = 6) -> dict[str, Pose]:
 
 
 def _database(path, true: dict[str, Pose], seed: int = 0) -> dict[str, np.ndarray]:
-    """A COLMAP database of the ground images `true` as services.combined_sfm writes it: keypoints of
+    """A COLMAP database of the ground images `true` as services.sfm.combined writes it: keypoints of
     facade points, each image matched with its next two, with the pair's relative pose (as
     verify_ground_pair finds it). Returns the keypoints."""
-    from services import combined_sfm
+    from services.sfm import combined as combined_sfm
 
     rng = np.random.default_rng(seed)
     n = 3000
@@ -85,9 +85,9 @@ def test_colmaps_mapper_reconstructs_the_ground_images_from_the_database(tmp_pat
 
 
 def test_mapper_registrations_far_from_their_pos_are_dropped():
-    """services.combined_sfm.drop_ill_determined: a ground image the mapper registered on well-spread
+    """services.sfm.combined.drop_ill_determined: a ground image the mapper registered on well-spread
     points is still dropped when its pose is 20 m from its POS (a repeated facade); one near it stays."""
-    from services.combined_sfm import drop_ill_determined
+    from services.sfm.combined import drop_ill_determined
 
     true = _street(2)
     rng = np.random.default_rng(5)
@@ -113,7 +113,7 @@ def test_mapper_registrations_far_from_their_pos_are_dropped():
 
 
 def test_the_report_says_why_a_ground_image_is_not_registered():
-    from services.combined_sfm import build_report
+    from services.sfm.combined import build_report
 
     true = _street(3)
     rec = pycolmap.Reconstruction()
@@ -194,8 +194,8 @@ def test_a_run_of_ground_images_placed_by_a_patch_is_ill_determined():
     but placed by a 1 m patch that the aerial images see are as uncertain as the patch leaves them (each
     image alone, with its points held fixed, looks well determined); placed by points spread over the
     facade they are determined, and drop_ill_determined keeps them."""
-    from services.combined_sfm import drop_ill_determined
     from services.pose_uncertainty import fit_position_std, joint_position_stds
+    from services.sfm.combined import drop_ill_determined
 
     rec, ids = _anchored_street(patch=True)
     ground = [ids[n] for n in sorted(ids) if n.startswith("ground/")]
@@ -219,11 +219,11 @@ def test_a_run_of_ground_images_placed_by_a_patch_is_ill_determined():
 
 
 def test_transferred_tracks_are_seeded_for_ground_images_not_registered_yet():
-    """services.combined_sfm._seed_tracks: a transferred track is triangulated from its registered
+    """services.sfm.combined._seed_tracks: a transferred track is triangulated from its registered
     observations; the keypoints of a ground image the reducer did not localize link its aerial
     observations but stay out of the track (the mapper then sees that image's 2D-3D correspondences and
     can register it); once that image is registered its keypoints join the track."""
-    from services.combined_sfm import _seed_tracks
+    from services.sfm.combined import _seed_tracks
 
     rng = np.random.default_rng(2)
     aerial_cam = Camera("PINHOLE", 1600, 1200, [1300.0, 1300.0, 800.0, 600.0])
@@ -268,10 +268,10 @@ def test_transferred_tracks_are_seeded_for_ground_images_not_registered_yet():
 
 
 def test_the_input_model_holds_the_pnp_poses_its_seeding_mode_takes(tmp_path):
-    """services.combined_sfm.build_input_model: with seed_pnp_poses "trusted" (the default) only the
+    """services.sfm.combined.build_input_model: with seed_pnp_poses "trusted" (the default) only the
     accepted PnP poses that rest on trusted rendered depth start registered; True takes every accepted
     pose with a pair the mapper keeps, False none."""
-    from services import combined_sfm
+    from services.sfm import combined as combined_sfm
 
     aerial_cam = Camera("PINHOLE", 1600, 1200, [1300.0, 1300.0, 800.0, 600.0])
     true = {

@@ -1,5 +1,5 @@
 """Ground-ground pair verification of the combined reconstruction: an essential matrix whose relative
-pose must agree with the POS (services.combined_sfm.verify_ground_pair)."""
+pose must agree with the POS (services.sfm.combined.verify_ground_pair)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from services.colmap_model import Camera, Pose
-from services.combined_sfm import default_conf, verify_ground_pair
+from services.sfm.combined import default_conf, verify_ground_pair
 from services.viewpoints import look_at
 
 CAM = Camera(model="PINHOLE", width=1024, height=768, params=[750.0, 750.0, 512.0, 384.0])

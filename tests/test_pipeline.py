@@ -173,7 +173,7 @@ def test_the_reducer_counts_the_pnp_inliers_on_trusted_rendered_depth(tiny_job, 
     """ground_poses.json says how many of a pose's inliers rest on rendered depth the reducer trusted
     (the tiny job renders exact views: all of them), what the combined reconstruction's default
     seed_pnp_poses ("trusted") decides on (tests/test_combined_checks.py)."""
-    from services.combined_sfm import rests_on_trusted_depth
+    from services.sfm.combined import rests_on_trusted_depth
 
     job, _, _ = tiny_job
     conf = job.combined_conf()

@@ -37,6 +37,7 @@ import logging
 import shutil
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -496,6 +497,250 @@ def _log_matching(db_path: Path, conf: dict, pairing: str, seconds: float) -> di
 
 
 # -- main --------------------------------------------------------------------------------------
+@dataclass
+class AerialInputs:
+    """The images, POS and camera priors of one aerial SfM, and its pairs (the `sfm:images` step)."""
+
+    root: Path  # the images' folder (set/NAME)
+    names: list[str]
+    pos: dict[str, PosRecord]
+    pos_source: str
+    frame: Any  # services.pos.frames.LocalFrame: the ENU frame at the POS centroid
+    in_crs: str | None
+    crs_doc: dict[str, Any]
+    camera: Camera | None  # one camera for all images, None: one per image from its EXIF
+    cam_source: str
+    single_camera: bool
+    pair_mode: str
+    name_pairs: list[tuple[str, str]]
+    pairs_path: Path
+
+    @property
+    def pairing(self) -> str:
+        return f"{self.pair_mode} ({len(self.name_pairs)} pairs)"
+
+
+def load_inputs(
+    conf: dict[str, Any],
+    image_dir: str | Path,
+    out_dir: Path,
+    pos_records: list[PosRecord] | str | Path | None,
+    cameras: dict[str, Camera] | None,
+    image_set: str,
+) -> AerialInputs:
+    """The images (checked), their POS, output CRS, camera prior and the pairs to match."""
+    root, names = prepare_images(image_dir, out_dir, image_set)
+    sizes = verify_images(root, names, conf["verify_images"])
+    if pos_records is None:
+        records, pos_source = read_pos_exif(root, names), "exif"
+    elif isinstance(pos_records, str | Path):
+        records, pos_source = read_pos(pos_records), str(pos_records)
+    else:
+        records, pos_source = list(pos_records), "records"
+    pos = select_records(records, names, image_set)
+    frame = local_frame(pos)
+    in_crs = pos_crs(pos)
+    out_crs = export_mod.resolve_crs(conf["export"]["out_crs"], in_crs)  # CRSError before any work
+    files = export_mod.output_files(out_crs, conf["export"]["footprints"])
+    camera, cam_source = camera_prior(cameras, root, names, image_set)
+    single_camera = check_sizes(sizes, camera, cam_source)
+    if not single_camera:
+        logger.warning("the images differ in size: one camera per image, priors from their EXIF")
+        camera, cam_source = None, "exif per image"
+    cams_by_name = camera_priors(names, camera, sizes, root)
+    pair_mode, name_pairs = pairing_mod.get_pairs(conf["matching"], names, pos, frame, cams_by_name)
+    pairs_path = pairing_mod.write_pairs(out_dir / "pairs.txt", name_pairs)
+    logger.info("%s pairing: %d pairs -> %s", pair_mode, len(name_pairs), pairs_path)
+    logger.info(
+        "%d %s images under %s, POS from %s, camera prior from %s; ENU origin %.7f %.7f %.2f",
+        len(names),
+        image_set,
+        root,
+        pos_source,
+        cam_source,
+        frame.lat0,
+        frame.lon0,
+        frame.h0,
+    )
+    crs_doc = {"pos": in_crs, "output": out_crs, "files": files}
+    return AerialInputs(
+        root, names, pos, pos_source, frame, in_crs, crs_doc, camera, cam_source, single_camera, pair_mode,
+        name_pairs, pairs_path,
+    )  # fmt: skip
+
+
+def _std_conf(conf: dict) -> dict[str, float]:
+    return {"default_std_xy": conf["pos"]["default_std_xy"], "default_std_z": conf["pos"]["default_std_z"]}
+
+
+def features_and_matches(
+    conf: dict, inp: AerialInputs, db_path: Path, out_dir: Path, timings: dict[str, float]
+) -> tuple[dict, dict, dict]:
+    """The database: features (SIFT or ALIKED) with the POS as pose priors, matches of the pairs checked
+    against the POS. Returns (database stats, the pairs' check, report entries of the feature path)."""
+    for p in (db_path, db_path.with_name(db_path.name + "-wal"), db_path.with_name(db_path.name + "-shm")):
+        p.unlink(missing_ok=True)
+    ftype = conf["features"]["type"]
+    if ftype not in ("sift", "aliked"):
+        raise ValueError(f"unknown feature type {ftype!r} (sift or aliked)")
+    std = _std_conf(conf)
+    extra: dict[str, Any] = {}
+    with stage("sfm:features", logger):
+        t0 = time.perf_counter()
+        if ftype == "sift":
+            extract_sift(conf, db_path, inp.root, inp.names, inp.camera, inp.single_camera)
+            ids, feats = None, None
+        else:
+            ids, feats, extra["aliked"] = _aliked_features(conf, inp, db_path, out_dir)
+        write_pose_priors(db_path, inp.pos, inp.frame, std["default_std_xy"], std["default_std_z"])
+        timings["features"] = time.perf_counter() - t0
+        turned = f" ({extra['aliked']['turned_images']} turned north up)" if "aliked" in extra else ""
+        logger.info(
+            "%d images%s, %.0f keypoints per image in %.1f s",
+            len(inp.names),
+            turned,
+            _database_stats(db_path, 0)["mean_keypoints"],
+            timings["features"],
+        )
+    with stage("sfm:matching", logger):
+        t0 = time.perf_counter()
+        if ftype == "sift":
+            match_sift(conf, db_path, inp.pair_mode, inp.pairs_path)
+        else:
+            match_aliked(conf, db_path, ids, feats, inp.name_pairs)
+        pair_check = verify_mod.check_pairs(db_path, inp.pos, inp.frame, {**conf["verify"], **std})
+        timings["matching"] = time.perf_counter() - t0
+        dbstats = _log_matching(db_path, conf, inp.pairing, timings["matching"])
+    return dbstats, pair_check, extra
+
+
+def _aliked_features(conf: dict, inp: AerialInputs, db_path: Path, out_dir: Path) -> tuple[dict, dict, dict]:
+    """ALIKED features of the images (each turned north up by the POS when `upright`), written to the
+    database: (image ids, features, report entry)."""
+    turns = pairing_mod.upright_turns(inp.pos, inp.names) if conf["features"]["upright"] == "pos" else {}
+    cache = out_dir / f"{aliked_conf(conf)['output']}.h5"
+    feats = extract_aliked(conf, inp.root, inp.names, turns, cache)
+    ids = write_aliked_database(conf, db_path, inp.names, inp.camera, feats)
+    turned = sum(k != 0 for k in turns.values())
+    return ids, feats, {"turned_images": turned, "turns": {n: k for n, k in turns.items() if k}}
+
+
+def map_images(
+    conf: dict, inp: AerialInputs, db_path: Path, out_dir: Path, dbstats: dict, timings: dict[str, float]
+) -> tuple[dict[int, pycolmap.Reconstruction], int]:
+    """Incremental mapping (intrinsics refined unless cameras.json gave them): (models, the largest's key)."""
+    t0 = time.perf_counter()
+    refine = conf["mapping"]["refine_intrinsics"]
+    refine = inp.camera is None or inp.cam_source != "cameras.json" if refine is None else bool(refine)
+    models = run_mapping(conf, db_path, inp.root, out_dir / "models", len(inp.names), refine)
+    timings["mapping"] = time.perf_counter() - t0
+    if not models:
+        raise SfmError(
+            f"no model: {dbstats['num_verified_pairs']} verified pairs among {len(inp.names)} images"
+        )
+    best = max(models, key=lambda k: models[k].num_reg_images())
+    rec = models[best]
+    logger.info(
+        "%d model(s); the largest registers %d/%d images, %d points in %.1f s",
+        len(models),
+        rec.num_reg_images(),
+        len(inp.names),
+        rec.num_points3D(),
+        timings["mapping"],
+    )
+    return models, best
+
+
+def georeference_model(
+    conf: dict, rec: pycolmap.Reconstruction, inp: AerialInputs, out_dir: Path
+) -> tuple[georef_mod.Georef | None, dict, Path]:
+    """Georeference the model by the POS and write it (kept whatever the georeference gave) with
+    georef.json: (georef or None when it failed, its summary, the sparse folder)."""
+    sigma = float(np.median([inp.pos[n].std_xy or conf["pos"]["default_std_xy"] for n in inp.names]))
+    geo: georef_mod.Georef | None = None
+    try:
+        geo = georef_mod.georeference(rec, inp.pos, inp.frame, sigma, conf["georef"])
+        gsum = georef_mod.summary(geo, conf["georef"])
+    except georef_mod.GeorefError as e:
+        gsum = georef_mod.failed_summary(str(e))
+    if gsum["status"] == "failed":
+        inp.crs_doc["files"] = []
+    sparse = out_dir / "sparse"
+    if sparse.exists():
+        shutil.rmtree(sparse)
+    sparse.mkdir(parents=True)
+    rec.write(str(sparse))
+    georef_mod.write_georef(out_dir / "georef.json", geo, inp.frame, inp.crs_doc, gsum)
+    if geo is not None:
+        logger.info(
+            "georeferenced by %s: residuals mean %.2f m, median %.2f m, max %.2f m (%d/%d inliers)",
+            geo.method,
+            gsum["residual_m"]["mean"],
+            gsum["residual_m"]["median"],
+            gsum["residual_m"]["max"],
+            gsum["num_inliers"],
+            gsum["num_images"],
+        )
+    if gsum["status"] != "ok":
+        logger.warning("georeference %s: %s", gsum["status"], "; ".join(gsum["reasons"]))
+    return geo, gsum, sparse
+
+
+def export_and_report(
+    conf: dict,
+    inp: AerialInputs,
+    models: dict,
+    best: int,
+    geo: georef_mod.Georef | None,
+    gsum: dict,
+    db_path: Path,
+    out_dir: Path,
+    timings: dict[str, float],
+    extra: dict[str, Any],
+) -> dict:
+    """Camera exports (none after a failed georeference, nor stale ones of an earlier run) and
+    report.json; the report."""
+    rec = models[best]
+    if geo is None or gsum["status"] == "failed":
+        for p in (out_dir / "cameras.geojson", out_dir / "cameras.csv", *out_dir.glob("cameras.epsg*")):
+            p.unlink(missing_ok=True)
+    else:
+        residuals = {n: float(np.linalg.norm(v)) for n, v in geo.residuals.items()}
+        export_mod.main(conf["export"], rec, inp.frame, out_dir, inp.in_crs, residuals)
+    ftype = conf["features"]["type"]
+    report = build_report(
+        rec,
+        inp.names,
+        db_path,
+        models,
+        best,
+        {**gsum, "method": geo and geo.method, "condition": geo and geo.condition},
+        timings,
+        extra={
+            "conf": conf.get("output", ftype),
+            "features": ftype,
+            "pairing": inp.pairing,
+            "pos_source": inp.pos_source,
+            "camera_prior": inp.cam_source,
+            "frame": {"lat0": inp.frame.lat0, "lon0": inp.frame.lon0, "h0": inp.frame.h0},
+            "crs": inp.crs_doc,
+            **extra,
+        },
+        min_inliers=conf["matching"]["min_num_inliers"],
+    )
+    write_report(out_dir / "report.json", report)
+    for u in report["unregistered"]:
+        logger.warning("not registered: %s (%s)", u["name"], u["reason"])
+    logger.info(
+        "NRI %s, N3P %d, reprojection error %.2f px -> %s",
+        report["NRI"],
+        report["num_points3D"],
+        report["mean_reprojection_error_px"],
+        out_dir / "sparse",
+    )
+    return report
+
+
 def main(
     conf: dict[str, Any],
     image_dir: str | Path,
@@ -514,196 +759,24 @@ def main(
     out_dir.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
-
     with stage("sfm:images", logger):
         t0 = time.perf_counter()
-        root, names = prepare_images(image_dir, out_dir, image_set)
-        sizes = verify_images(root, names, conf["verify_images"])
-        if pos_records is None:
-            records, pos_source = read_pos_exif(root, names), "exif"
-        elif isinstance(pos_records, str | Path):
-            records, pos_source = read_pos(pos_records), str(pos_records)
-        else:
-            records, pos_source = list(pos_records), "records"
-        pos = select_records(records, names, image_set)
-        frame = local_frame(pos)
-        in_crs = pos_crs(pos)
-        out_crs = export_mod.resolve_crs(conf["export"]["out_crs"], in_crs)  # CRSError before any work
-        crs_doc = {
-            "pos": in_crs,
-            "output": out_crs,
-            "files": export_mod.output_files(out_crs, conf["export"]["footprints"]),
-        }
-        camera, cam_source = camera_prior(cameras, root, names, image_set)
-        single_camera = check_sizes(sizes, camera, cam_source)
-        if not single_camera:
-            logger.warning("the images differ in size: one camera per image, priors from their EXIF")
-            camera, cam_source = None, "exif per image"
-        cams_by_name = camera_priors(names, camera, sizes, root)
-        pair_mode, name_pairs = pairing_mod.get_pairs(conf["matching"], names, pos, frame, cams_by_name)
-        pairs_path = pairing_mod.write_pairs(out_dir / "pairs.txt", name_pairs)
+        inp = load_inputs(conf, image_dir, out_dir, pos_records, cameras, image_set)
         timings["images"] = time.perf_counter() - t0
-        logger.info("%s pairing: %d pairs -> %s", pair_mode, len(name_pairs), pairs_path)
-        logger.info(
-            "%d %s images under %s, POS from %s, camera prior from %s; ENU origin %.7f %.7f %.2f",
-            len(names),
-            image_set,
-            root,
-            pos_source,
-            cam_source,
-            frame.lat0,
-            frame.lon0,
-            frame.h0,
-        )
-
     db_path = out_dir / "database.db"
-    for p in (db_path, db_path.with_name(db_path.name + "-wal"), db_path.with_name(db_path.name + "-shm")):
-        p.unlink(missing_ok=True)
-    pairing = f"{pair_mode} ({len(name_pairs)} pairs)"
-    std_xy, std_z = conf["pos"]["default_std_xy"], conf["pos"]["default_std_z"]
-    std_conf = {"default_std_xy": std_xy, "default_std_z": std_z}
-    extra: dict[str, Any] = {}  # report entries of one feature path
-    ftype = conf["features"]["type"]
     with colmap_log_level(conf["colmap_log_level"]):
-        if ftype == "sift":
-            with stage("sfm:features", logger):
-                t0 = time.perf_counter()
-                extract_sift(conf, db_path, root, names, camera, single_camera)
-                write_pose_priors(db_path, pos, frame, std_xy, std_z)
-                timings["features"] = time.perf_counter() - t0
-                logger.info(
-                    "%d images, %.0f keypoints per image in %.1f s",
-                    len(names),
-                    _database_stats(db_path, 0)["mean_keypoints"],
-                    timings["features"],
-                )
-            with stage("sfm:matching", logger):
-                t0 = time.perf_counter()
-                match_sift(conf, db_path, pair_mode, pairs_path)
-                pair_check = verify_mod.check_pairs(db_path, pos, frame, {**conf["verify"], **std_conf})
-                timings["matching"] = time.perf_counter() - t0
-                dbstats = _log_matching(db_path, conf, pairing, timings["matching"])
-        elif ftype == "aliked":
-            with stage("sfm:features", logger):
-                t0 = time.perf_counter()
-                upright = conf["features"]["upright"] == "pos"
-                turns = pairing_mod.upright_turns(pos, names) if upright else {}
-                cache = out_dir / f"{aliked_conf(conf)['output']}.h5"
-                feats = extract_aliked(conf, root, names, turns, cache)
-                ids = write_aliked_database(conf, db_path, names, camera, feats)
-                write_pose_priors(db_path, pos, frame, std_xy, std_z)
-                timings["features"] = time.perf_counter() - t0
-                turned = sum(k != 0 for k in turns.values())
-                extra["aliked"] = {"turned_images": turned, "turns": {n: k for n, k in turns.items() if k}}
-                logger.info(
-                    "%d images (%d turned north up), %.0f keypoints per image in %.1f s",
-                    len(names),
-                    turned,
-                    np.mean([len(feats[n]["keypoints"]) for n in names]),
-                    timings["features"],
-                )
-            with stage("sfm:matching", logger):
-                t0 = time.perf_counter()
-                match_aliked(conf, db_path, ids, feats, name_pairs)
-                pair_check = verify_mod.check_pairs(db_path, pos, frame, {**conf["verify"], **std_conf})
-                timings["matching"] = time.perf_counter() - t0
-                dbstats = _log_matching(db_path, conf, pairing, timings["matching"])
-        else:
-            raise ValueError(f"unknown feature type {ftype!r} (sift or aliked)")
+        dbstats, pair_check, extra = features_and_matches(conf, inp, db_path, out_dir, timings)
         with stage("sfm:mapping", logger):
-            t0 = time.perf_counter()
-            refine = conf["mapping"]["refine_intrinsics"]
-            refine = camera is None or cam_source != "cameras.json" if refine is None else bool(refine)
-            models = run_mapping(conf, db_path, root, out_dir / "models", len(names), refine)
-            timings["mapping"] = time.perf_counter() - t0
-            if not models:
-                raise SfmError(
-                    f"no model: {dbstats['num_verified_pairs']} verified pairs among {len(names)} images"
-                )
-            best = max(models, key=lambda k: models[k].num_reg_images())
-            rec = models[best]
-            logger.info(
-                "%d model(s); the largest registers %d/%d images, %d points in %.1f s",
-                len(models),
-                rec.num_reg_images(),
-                len(names),
-                rec.num_points3D(),
-                timings["mapping"],
-            )
-
+            models, best = map_images(conf, inp, db_path, out_dir, dbstats, timings)
     with stage("sfm:georef", logger):
         t0 = time.perf_counter()
-        sigma = float(np.median([pos[n].std_xy or std_xy for n in names]))
-        geo: georef_mod.Georef | None = None
-        try:
-            geo = georef_mod.georeference(rec, pos, frame, sigma, conf["georef"])
-            gsum = georef_mod.summary(geo, conf["georef"])
-        except georef_mod.GeorefError as e:
-            gsum = georef_mod.failed_summary(str(e))
-        failed = gsum["status"] == "failed"
-        if failed:
-            crs_doc["files"] = []
-        sparse = out_dir / "sparse"
-        if sparse.exists():
-            shutil.rmtree(sparse)
-        sparse.mkdir(parents=True)
-        rec.write(str(sparse))  # kept whatever the georeferencing gave
-        georef_mod.write_georef(out_dir / "georef.json", geo, frame, crs_doc, gsum)
+        geo, gsum, sparse = georeference_model(conf, models[best], inp, out_dir)
         timings["georef"] = time.perf_counter() - t0
-        if geo is not None:
-            logger.info(
-                "georeferenced by %s: residuals mean %.2f m, median %.2f m, max %.2f m (%d/%d inliers)",
-                geo.method,
-                gsum["residual_m"]["mean"],
-                gsum["residual_m"]["median"],
-                gsum["residual_m"]["max"],
-                gsum["num_inliers"],
-                gsum["num_images"],
-            )
-        if gsum["status"] != "ok":
-            logger.warning("georeference %s: %s", gsum["status"], "; ".join(gsum["reasons"]))
-
     with stage("sfm:report", logger):
-        if failed:  # no camera positions from a failed georeference (nor stale ones of an earlier run)
-            for p in (out_dir / "cameras.geojson", out_dir / "cameras.csv", *out_dir.glob("cameras.epsg*")):
-                p.unlink(missing_ok=True)
-        else:
-            residuals = {n: float(np.linalg.norm(v)) for n, v in geo.residuals.items()}  # type: ignore[union-attr]
-            export_mod.main(conf["export"], rec, frame, out_dir, in_crs, residuals)
         timings["total"] = time.perf_counter() - t_all
-        report = build_report(
-            rec,
-            names,
-            db_path,
-            models,
-            best,
-            {**gsum, "method": geo and geo.method, "condition": geo and geo.condition},
-            timings,
-            extra={
-                "conf": conf.get("output", ftype),
-                "features": ftype,
-                "pairing": pairing,
-                "pos_source": pos_source,
-                "camera_prior": cam_source,
-                "frame": {"lat0": frame.lat0, "lon0": frame.lon0, "h0": frame.h0},
-                "crs": crs_doc,
-                "database": dbstats,
-                "pair_check": pair_check,
-                **extra,
-            },
-            min_inliers=conf["matching"]["min_num_inliers"],
-        )
-        write_report(out_dir / "report.json", report)
-        for u in report["unregistered"]:
-            logger.warning("not registered: %s (%s)", u["name"], u["reason"])
-        logger.info(
-            "NRI %s, N3P %d, reprojection error %.2f px -> %s",
-            report["NRI"],
-            report["num_points3D"],
-            report["mean_reprojection_error_px"],
-            sparse,
-        )
-    if failed:
+        extra = {"database": dbstats, "pair_check": pair_check, **extra}
+        export_and_report(conf, inp, models, best, geo, gsum, db_path, out_dir, timings, extra)
+    if gsum["status"] == "failed":
         raise georef_mod.GeorefError(
             f"georeferencing failed: {'; '.join(gsum['reasons'])}. The model is kept in {sparse} "
             f"(not georeferenced), the report in {out_dir / 'report.json'}"

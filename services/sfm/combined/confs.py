@@ -1,0 +1,60 @@
+"""The combined SfM's conf (services.sfm.combined)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+default_conf: dict[str, Any] = {
+    "ground_pairs": {
+        "num_neighbors": 4,  # each ground image with its nearest ground images (POS) ...
+        "max_distance_m": 40.0,  # ... within this distance ...
+        "max_heading_deg": 100.0,  # ... whose viewing directions differ by less than this
+        "min_inliers": 15,
+        # verification: an essential matrix (both cameras calibrated) whose relative pose agrees with
+        # the POS: rotation within prior_sigmas x the attitude noise (at least min_rotation_deg), the
+        # baseline's direction within the angle the position noise allows (unchecked when the noise
+        # is as large as the baseline)
+        "ransac_px": 3.0,
+        "prior_sigmas": 3.0,
+        "min_rotation_deg": 10.0,
+        "min_direction_deg": 15.0,
+        "seed": 0,
+    },
+    "seed_points": True,  # 3D points of the transferred tracks in the input model
+    # ground images with an accepted PnP pose start registered, held at that pose ... (off: the mapper
+    # registers them like the others and they are judged like the others; those it leaves out or drops
+    # are added at their PnP pose, see add_pnp_images. A PnP pose on points triangulated through a
+    # CPU-trained 3DGS's blurry renders can be 0.8 m off within its 0.25 m std, and held fixed it drags
+    # the chain of ground images the mapper registers from it: small-walk, README). "trusted": only the
+    # poses that rest on rendered depth the reducer trusted (at least seed_min_trusted_ratio of their
+    # inliers lifted by the depth of views whose depth agrees with the aerial points: exact renders)
+    "seed_pnp_poses": "trusted",
+    "seed_min_trusted_ratio": 0.5,
+    "min_seed_matches": 15,  # ... when one of their pairs has this many matches (and min_num_matches)
+    # ground images with an accepted PnP pose that the mapper could not keep (their 2D-3D support comes
+    # from many aerial images, or from the rendered depth, with no pair of min_num_matches) are added
+    # to the combined model at that pose, observing the model's points their transferred matches reach
+    "add_pnp_images": True,
+    "add_max_px": 4.0,  # such an observation must reproject within this (ground pixels)
+    "add_min_angle_deg": 2.0,  # a new aerial-ground point must be seen under this angle at least
+    # ground images the mapper registered itself (not at an accepted PnP pose) are dropped when the
+    # model leaves their camera centre this uncertain (standard deviation along the worst direction from
+    # the bundle adjustment's covariance, pixel noise at least 1 px: services.pose_uncertainty.
+    # joint_position_stds; None: kept), or when their pose disagrees with their POS (the reducer's limits)
+    "max_position_std_m": 0.5,
+    "pos_limits": None,  # those POS limits: the reducer's conf["pnp"] (None: services.reduce's defaults)
+    "mapping": {
+        "min_num_matches": 15,  # pairs with fewer matches are ignored by the mapper
+        "abs_pose_min_num_inliers": 15,
+        "abs_pose_min_inlier_ratio": 0.15,
+        "abs_pose_max_error": 8.0,
+        "min_model_size": 3,
+        "refine_intrinsics": False,
+        "fix_aerial": True,  # the input model (aerial + PnP-seeded ground) stays fixed; BA refines the rest
+        "seed": 0,
+    },
+    "georef": True,
+    # GeoPackage/GeoJSON cameras, omega/phi/kappa text and LAS points in out_dir/gis (services.sfm.gis)
+    "gis": True,
+    "colmap_log_level": 1,
+}

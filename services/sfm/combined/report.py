@@ -1,0 +1,127 @@
+"""The combined SfM's report (NRI per set, N3P, reprojection error, each ground image's registration and
+the reason of those not registered) and its GIS outputs."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from services.colmap_model import Pose
+from services.sfm.combined.model import registered_ground
+
+logger = logging.getLogger("midview.combined_sfm")
+
+
+def _ground_entry(
+    g: str,
+    reg: dict[str, pycolmap.Image],
+    by_pnp: set[str],
+    priors: dict[str, Pose],
+    pnp: dict[str, dict],
+    dropped: dict[str, str],
+    largest: int | None,
+    min_pair_matches: int,
+) -> dict[str, Any]:
+    """One ground image in the report: how it was registered and where (against its POS and PnP pose),
+    or why it was not (`largest`: its largest verified pair; None: unknown)."""
+    d: dict[str, Any] = {"registered": g in reg}
+    if g in reg:
+        # "pnp": at the reducer's PnP pose (seeded, kept fixed by the mapper, or added after it)
+        d["registered_by"] = "pnp" if g in by_pnp else "mapper"
+        d["observations"] = int(reg[g].num_points3D)
+        c = np.asarray(reg[g].projection_center())
+        d["center"] = c.tolist()
+        if g in priors:
+            d["to_pos_m"] = float(np.linalg.norm(c - priors[g].center))
+        if pnp.get(g, {}).get("accepted"):
+            d["to_pnp_m"] = float(np.linalg.norm(c - np.asarray(pnp[g]["center"], float)))
+    elif g in dropped:
+        d["reason"] = f"registered by the mapper but dropped: {dropped[g]}"
+    elif pnp.get(g, {}).get("accepted"):
+        d["reason"] = "registered by PnP but dropped by the mapper"
+    elif largest is not None and largest >= min_pair_matches:
+        d["reason"] = (
+            f"verified pairs (the largest {largest} matches), but too few of its matches reach"
+            " 3D points of the registered images for the mapper to localize it"
+        )
+    else:
+        d["reason"] = (
+            "no verified aerial-ground or ground-ground pair of at least"
+            f" {min_pair_matches} matches to register it"
+        )
+    return d
+
+
+def build_report(
+    rec: pycolmap.Reconstruction,
+    ids: dict[str, int],
+    priors: dict[str, Pose],
+    pnp: dict[str, dict],
+    seed: pycolmap.Reconstruction,
+    georef: dict | None,
+    timings: dict,
+    t_all: float,
+    added: list[str] | None = None,
+    dropped: dict[str, str] | None = None,
+    conf_fixed: bool = True,
+    pair_sizes: dict[int, int] | None = None,
+    min_pair_matches: int = 15,
+) -> dict:
+    """report.json of the combined model (see the module docstring)."""
+    reg = {im.name: im for im in rec.images.values() if im.has_pose}
+    # held at the PnP pose: added after the mapper, or seeded (unless the mapper's BA refined them)
+    by_pnp = set(added or []) | (registered_ground(seed) if conf_fixed else set())
+    sets = {
+        "aerial": sorted(n for n in ids if n.startswith("aerial/")),
+        "ground": sorted(n for n in ids if n.startswith("ground/")),
+    }
+    ground = {
+        g: _ground_entry(
+            g,
+            reg,
+            by_pnp,
+            priors,
+            pnp,
+            dropped or {},
+            None if pair_sizes is None else pair_sizes.get(ids[g], 0),
+            min_pair_matches,
+        )
+        for g in sets["ground"]
+    }
+    return {
+        "NRI": {s: f"{sum(n in reg for n in names)}/{len(names)}" for s, names in sets.items()},
+        "num_registered": {s: sum(n in reg for n in names) for s, names in sets.items()},
+        "num_images": {s: len(names) for s, names in sets.items()},
+        "num_points3D": int(rec.num_points3D()),
+        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+        "mean_track_length": float(rec.compute_mean_track_length()),
+        "added_pnp_ground_images": sorted(added or []),
+        "seeded_ground_images": len(registered_ground(seed)),
+        "georef": georef,
+        "ground": ground,
+        "timings_s": {
+            **{k: round(v, 2) for k, v in timings.items()},
+            "total": round(time.perf_counter() - t_all, 2),
+        },
+    }
+
+
+def write_gis(rec, frame, pos, report: dict, aerial_dir: Path, out: Path) -> dict:
+    """GeoPackage, GeoJSON, omega/phi/kappa and LAS outputs (services.sfm.gis) in the aerial SfM's output
+    CRS (else the POS CRS, else UTM); a failure is logged and reported, the model stays."""
+    from services.pos import read_pos
+    from services.sfm import gis
+
+    try:
+        crs_doc = json.loads((aerial_dir / "georef.json").read_text()).get("crs") or {}
+        records = {r.name: r for r in read_pos(pos)}
+        return gis.main(rec, frame, records, report, out, crs_doc.get("output") or crs_doc.get("pos"))
+    except Exception as e:  # noqa: BLE001 - the reconstruction is the result; its exports are extras
+        logger.warning("GIS outputs not written: %s", e)
+        return {"error": f"{type(e).__name__}: {e}"}
