@@ -99,7 +99,7 @@ def seed_matches(job: pipeline.Job, others: list[pipeline.Job]) -> None:
 def truth_alignment(scene: Path, sparse: Path) -> tuple[float, np.ndarray, np.ndarray]:
     """truth_from_model similarity fitted on the aerial camera centres."""
     from services.colmap_model import read_model
-    from services.views import _kabsch
+    from services.views.rendering import _kabsch
 
     _, est = read_model(sparse)
     _, gt = read_model(scene / "gt" / "sparse")
@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="viewpoint conf entry (services.viewpoints confs), repeatable: --view-set ground.max_width=640",
+        help="viewpoint conf entry (services.views confs), repeatable: --view-set ground.max_width=640",
     )
     ap.add_argument(
         "--match-set",

@@ -7,7 +7,7 @@
 
 The held-out PSNR of 3DGS training measures aerial views; the views midview matches are lower and
 tilted, where a model trained from the air smears and grows floaters. For every planned view (a
-views.json of services.viewpoints) this renders the true scene (services.views.GroundTruthRenderer,
+views.json of services.views.planning) this renders the true scene (services.views.GroundTruthRenderer,
 aligned to the aerial model) and each 3DGS model at a reduced width, and prints per model: PSNR and
 SSIM on the pixels where the truth has a surface (no sky), the median relative depth error, the
 fraction of pixels whose depth is within 5% of the truth, and matchability: ALIKED+LightGlue matches

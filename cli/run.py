@@ -152,7 +152,7 @@ def run(
         [],
         "--view-set",
         metavar="KEY=VALUE",
-        help="viewpoint conf entry (services.viewpoints), repeatable: --view-set paper.max_width=768",
+        help="viewpoint conf entry (services.views), repeatable: --view-set paper.max_width=768",
     ),
     match_set: list[str] = typer.Option(
         [],

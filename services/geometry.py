@@ -1,18 +1,27 @@
 """Camera geometry shared by the pipeline steps: cameras and poses (services.colmap_model), a camera
-looking at a point, the angle of a rotation, cameras at a smaller image size, and poses of pycolmap
-images. Conventions: world-to-camera poses (x_cam = R x_world + t), ENU world (z up), COLMAP pixels."""
+looking at a point, optical axes and the angles between directions and of rotations, cameras at a
+smaller image size, poses of pycolmap images and of POS records in a local frame.
+Conventions: world-to-camera poses (x_cam = R x_world + t), ENU world (z up), COLMAP pixels."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pycolmap
 
 from services.colmap_model import Camera, Pose
+from services.pos import LocalFrame, PosRecord
 
 __all__ = [
     "Camera",
     "Pose",
+    "angle_deg",
     "look_at",
+    "optical_axis",
+    "pitch_deg",
+    "pos_in_frame",
+    "rot_x",
     "pose_of_image",
     "rotation_angle_deg",
     "scaled_camera",
@@ -67,3 +76,43 @@ def scaled_camera(camera: Camera, max_width: int, fov_scale: float = 1.0) -> Cam
     return Camera(
         "PINHOLE", w, h, [K[0, 0] * sx / fov_scale, K[1, 1] * sy / fov_scale, K[0, 2] * sx, K[1, 2] * sy]
     )
+
+
+def rot_x(theta: float) -> np.ndarray:
+    """The rotation (3, 3) by theta radians about the x axis."""
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def optical_axis(pose: Pose) -> np.ndarray:
+    """Unit optical axis in the world frame."""
+    return pose.R[2] / np.linalg.norm(pose.R[2])
+
+
+def pitch_deg(pose: Pose) -> float:
+    """Elevation of the optical axis (0 horizontal, -90 nadir)."""
+    return float(np.degrees(np.arcsin(np.clip(optical_axis(pose)[2], -1.0, 1.0))))
+
+
+def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+    """The angle between two directions, in degrees (0-180)."""
+    u, v = np.asarray(u, float), np.asarray(v, float)
+    c = float(u @ v / max(np.linalg.norm(u) * np.linalg.norm(v), 1e-12))
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def pos_in_frame(
+    records: list[PosRecord], frame: LocalFrame, names: list[str] | None = None
+) -> dict[str, tuple[Pose | None, np.ndarray, PosRecord]]:
+    """{name: (pose or None without attitude, centre, record)} of POS records in a local frame."""
+    recs = [r for r in records if names is None or r.name in set(names)]
+    if not recs:
+        return {}
+    xyz = frame.from_wgs84(
+        np.array([r.lat for r in recs]), np.array([r.lon for r in recs]), np.array([r.h for r in recs])
+    ).reshape(-1, 3)
+    out = {}
+    for r, c in zip(recs, xyz, strict=True):
+        pose = Pose.from_center(r.R_world_from_cam, c) if r.R_world_from_cam is not None else None
+        out[r.name] = (pose, c, r)
+    return out

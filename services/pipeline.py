@@ -62,8 +62,8 @@ DEFAULT_SETTINGS: dict[str, Any] = {
     "sfm": {},  # overrides of services.sfm confs
     "splat": {},  # overrides of services.splat confs
     "blocks": {},  # overrides of services.splat.blocks confs["default"]
-    "viewpoints": {},  # overrides of services.viewpoints confs
-    "views": {},  # services.views conf
+    "viewpoints": {},  # overrides of services.views confs (the planners)
+    "views": {},  # services.views.rendering conf
     "matching": {},  # overrides of services.matching.views confs (e.g. resize_max)
     "transfer": {},  # overrides of services.reduce.default_conf
     "combined": {},  # overrides of services.sfm.combined.default_conf
@@ -79,7 +79,7 @@ def parse_settings_overrides(
     from services.matching.views import confs as match_confs
     from services.splat import confs as splat_confs
     from services.splat.train import check_conf
-    from services.viewpoints import confs as view_confs
+    from services.views import confs as view_confs
 
     splat_over = parse_overrides(splat, splat_confs["fast"])
     check_conf(merge_conf(splat_confs["fast"], splat_over))
@@ -221,9 +221,9 @@ class Job:
         return merge_conf(merge_conf(c, over), self.settings["splat"])
 
     def viewpoint_conf(self) -> dict:
-        from services import viewpoints
+        from services import views
 
-        c = viewpoints.confs[self.options.view_planner]
+        c = views.confs[self.options.view_planner]
         over = {"views_per_ground_image": int(self.options.views_per_ground_image), "seed": self.options.seed}
         return merge_conf(merge_conf(c, over), self.settings["viewpoints"])
 
@@ -560,30 +560,30 @@ def _splat_all(job: Job, report) -> dict:
 
 
 def _plan_views(job: Job, report) -> dict:
-    from services import viewpoints, views
+    from services.views import planning, rendering
 
     report(0.0, "planning views")
     r = job.renderer(blocks=False)
     try:
-        path = viewpoints.main(
+        path = planning.main(
             job.viewpoint_conf(),
             job.dir("sfm") / "sparse",
             job.pos,
             job.cameras,
             job.dir("sfm") / "georef.json",
             job.dir("plan") / "views.json",
-            depth_fn=views.depth_fn(r),
+            depth_fn=rendering.depth_fn(r),
         )
-    except viewpoints.NoViews as e:  # the plan in place (if any) stays
+    except planning.NoViews as e:  # the plan in place (if any) stays
         raise StageError(str(e)) from e
     return json.loads(path.read_text())["summary"]
 
 
 def _render_views(job: Job, report) -> dict:
-    from services import views
+    from services.views import rendering
 
     r = job.renderer()
-    path = views.main(job.settings["views"], job.dir("plan") / "views.json", job.dir("views"), r, report)
+    path = rendering.main(job.settings["views"], job.dir("plan") / "views.json", job.dir("views"), r, report)
     doc = json.loads(path.read_text())
     _prune(job.dir("views"), {f for v in doc["views"] for f in (v["image"], v["depth"])} | {"views.json"})
     return {"num_views": len(doc["views"]), "renderer": doc["rendered"]["renderer"]}

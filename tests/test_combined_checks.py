@@ -10,7 +10,7 @@ import pycolmap
 from services import reduce as transfer
 from services.colmap_model import Camera, Pose
 from services.conf import merge_conf
-from services.viewpoints import look_at
+from services.geometry import look_at
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
 STD = (2.5, 4.0, 2.0)

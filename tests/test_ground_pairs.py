@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from services.colmap_model import Camera, Pose
+from services.geometry import look_at
 from services.sfm.combined import default_conf, verify_ground_pair
-from services.viewpoints import look_at
 
 CAM = Camera(model="PINHOLE", width=1024, height=768, params=[750.0, 750.0, 512.0, 384.0])
 STD = (2.5, 4.0, 2.0)

@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 from services import reduce as transfer
 from services.colmap_model import Camera, Pose
 from services.conf import merge_conf
+from services.geometry import look_at
 from services.pose_uncertainty import fit_position_std, position_std, projection_jacobian
-from services.viewpoints import look_at
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
 POSE = look_at(np.array([0.0, 0.0, 1.7]), np.array([0.0, 20.0, 4.0]))

@@ -9,8 +9,8 @@ import numpy as np
 
 from services import reduce as transfer
 from services.colmap_model import Camera
+from services.geometry import look_at
 from services.prior_pnp import prior_gated_pnp, reprojection_errors
-from services.viewpoints import look_at
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
 TRUE = look_at(np.array([0.0, 0.0, 1.6]), np.array([0.0, 20.0, 4.0]))

@@ -419,7 +419,7 @@ def _yawed(pose, deg: float):
 def test_lowered_views_look_like_the_scene(tiny_survey, tmp_path):
     """Trained on the CPU on the `tiny` preset's 10 aerial images (true poses and points, 500 steps at
     240 px, about 30 s on 2 cores), the model renders each aerial camera lowered to half its height above
-    its target (the paper's viewpoint, services.viewpoints.paper_viewpoint) close to the ground-truth ray
+    its target (the paper's viewpoint, services.views.paper_viewpoint) close to the ground-truth ray
     caster's image of the same pose.
 
     Measured (seed 0): mean PSNR 20.9 dB and coarse correlation 0.50. PSNR / SSIM alone do not show that
@@ -435,8 +435,7 @@ def test_lowered_views_look_like_the_scene(tiny_survey, tmp_path):
     from services.splat.loss import psnr, ssim
     from services.splat.model import create_splats
     from services.splat.train import rescale_schedule
-    from services.viewpoints import paper_viewpoint, ray_plane, ray_target_points
-    from services.views import GroundTruthRenderer
+    from services.views import GroundTruthRenderer, paper_viewpoint, ray_plane, ray_target_points
 
     width, min_psnr, min_ncc = 240, 19.5, 0.4
     data = load_scene(tiny_survey / "gt" / "sparse", tiny_survey / "images", width, "aerial/", test_every=0)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from services.colmap_model import Camera
+from services.geometry import look_at
 from services.tracks import complete_tracks, guided_matches
-from services.viewpoints import look_at
 
 CAM = Camera("PINHOLE", 400, 300, [350.0, 350.0, 200.0, 150.0])
 

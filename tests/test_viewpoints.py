@@ -1,4 +1,4 @@
-"""Intermediate viewpoints (services/viewpoints.py) on constructed cameras."""
+"""Intermediate viewpoints (services/views/) on constructed cameras."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services import viewpoints as vp
+from services import views as vp
 from services.colmap_model import Camera, Pose
 from services.conf import merge_conf
 from services.pos import ypr_to_matrix

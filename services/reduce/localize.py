@@ -238,9 +238,9 @@ def ground_priors(
     pos: str | Path | list, georef: str | Path
 ) -> tuple[dict[str, Pose], dict[str, tuple[float, float, float]]]:
     """Ground POS poses in the aerial model frame and their standard deviations."""
+    from services.geometry import pos_in_frame
     from services.pos import read_pos
     from services.sfm.georef import read_georef_frame
-    from services.viewpoints import pos_in_frame
 
     records = read_pos(pos) if isinstance(pos, str | Path) else list(pos)
     frame = read_georef_frame(georef)

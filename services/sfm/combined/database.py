@@ -102,7 +102,7 @@ def _write_pair(
 
 def ground_pairs(poses: dict[str, Pose], names: list[str], conf: dict) -> list[tuple[str, str]]:
     """Ground image pairs from the POS: nearest neighbours looking alike."""
-    from services.viewpoints import angle_deg, optical_axis
+    from services.geometry import angle_deg, optical_axis
 
     names = sorted(n for n in names if n in poses)
     out = set()
@@ -135,8 +135,7 @@ def verify_ground_pair(
     (cam_from_world; std = (horizontal m, vertical m, attitude deg)). A fundamental matrix alone
     accepts repeated facade patterns between images that share nothing; the POS rejects them.
     Returns no inliers when the check fails."""
-    from services.geometry import rotation_angle_deg
-    from services.viewpoints import angle_deg
+    from services.geometry import angle_deg, rotation_angle_deg
 
     none = np.zeros((0, 2), np.int64)
     m = np.asarray(matches, np.int64).reshape(-1, 2)

@@ -1,8 +1,8 @@
 """Rendering the planned intermediate views: colour PNG, z-depth and the view's camera and pose.
 
-    from services import views
-    r = views.SplatRenderer("job/splat")                    # the product path: the 3DGS model
-    views.main(views.confs["default"], "plan/views.json", "job/views", r)
+    from services.views import rendering
+    r = rendering.SplatRenderer("job/splat")                # the product path: the 3DGS model
+    rendering.main(rendering.confs["default"], "plan/views.json", "job/views", r)
 
 Outputs under the output folder: NAME.png (RGB), NAME.depth.npy (float32 z-depth in metres along the
 optical axis, 0 where nothing reliable was rendered) and views.json (the plan, each view with its
@@ -31,12 +31,14 @@ from shared.logging import stage
 
 logger = logging.getLogger("midview.views")
 
+
 confs: dict[str, dict[str, Any]] = {
     "default": {
         "min_alpha": 0.5,  # 3DGS: pixels less opaque than this get no depth
         "max_depth_m": 2000.0,
     },
 }
+
 
 Progress = Callable[[float, str], None]
 
@@ -51,7 +53,6 @@ class Renderer(Protocol):
         ...
 
 
-# -- 3DGS --------------------------------------------------------------------------------------
 class SplatRenderer:
     """The 3DGS model of services.splat (a training folder, checkpoint or .ply)."""
 
@@ -86,7 +87,6 @@ class BlockRenderer(SplatRenderer):
         self.model, self.merged = merge_blocks(self.model, blocks_dir)
 
 
-# -- ground truth (tests, upper bound) -----------------------------------------------------------
 def _kabsch(src: np.ndarray, tgt: np.ndarray, scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
     """tgt ~ s R src + t (least squares)."""
     ms, mt = src.mean(0), tgt.mean(0)
@@ -211,11 +211,10 @@ def make_renderer(kind: str, **kwargs: Any) -> Renderer:
 
 
 def depth_fn(renderer: Renderer) -> Callable[[Camera, Pose], np.ndarray]:
-    """The renderer as a depth probe for services.viewpoints."""
+    """The renderer as a depth probe for services.views.planning."""
     return lambda camera, pose: renderer.render(camera, pose)[1]
 
 
-# -- files ---------------------------------------------------------------------------------------
 def image_file(name: str) -> str:
     return f"{name}.png"
 

@@ -1,0 +1,165 @@
+"""The ground-aware planner: for every ground camera, views at several heights above it, behind it or on
+the way to the aerial camera that sees its target most alike, looking at that target; occluded ones and
+those that see too little of what the ground camera sees are dropped."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from services.conf import merge_conf
+from services.geometry import look_at, optical_axis, pitch_deg, scaled_camera
+from services.views.rays import _horizontal, depth_at, unproject
+from services.views.scene import Scene
+from services.views.specs import ViewSpec, _stem, aerial_candidates, assign_candidates
+
+logger = logging.getLogger("midview.viewpoints")
+
+
+def ground_target(g: str, scene: Scene, conf: dict) -> tuple[np.ndarray, str]:
+    """The ground camera's target: its optical axis against the scene, else `look_ahead_m` ahead."""
+    gc = conf["ground"]
+    cam, pose = scene.ground_cameras[g], scene.ground_poses[g]
+    T, how = scene.target(cam, pose, conf, gc["min_target_m"], gc["max_target_m"])
+    if T is None:
+        T = pose.center + gc["look_ahead_m"] * optical_axis(pose)
+        T[2] = max(T[2], scene.terrain_z)
+        how = "look-ahead"
+    return T, how
+
+
+def surface_targets(g: str, scene: Scene, conf: dict) -> list[np.ndarray]:
+    """Points of what ground camera g sees (its depth probe at a grid of image positions, within
+    [min_target_m, max_target_m]), the nearest its principal point first: other targets for its views
+    when every line of sight to the one on its principal ray is blocked. [] without a depth probe."""
+    gc = conf["ground"]
+    cam, pose = scene.ground_cameras[g], scene.ground_poses[g]
+    probe = scene.depth_probe(cam, pose, conf["target"]["probe_width"])
+    if probe is None:
+        return []
+    pc, d = probe
+    found = []
+    for fy in (0.35, 0.5, 0.65):
+        for fx in (0.15, 0.3, 0.5, 0.7, 0.85):
+            u, v = int(fx * pc.width), int(fy * pc.height)
+            z = depth_at(d, u, v, 5, min_valid_div=2)
+            if z is not None and gc["min_target_m"] <= z <= gc["max_target_m"]:
+                X = unproject(pc.K, pose, np.array([u]), np.array([v]), np.array([z]))[0]
+                found.append((float(np.hypot(fx - 0.5, fy - 0.5)), X))
+    return [X for _, X in sorted(found, key=lambda fX: fX[0])]
+
+
+def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
+    """The placements of conf["ground"]["placements"] for ground image g, in order, occluded ones dropped
+    and those that see less than min_covisible of the ground camera's surface too; when none is left,
+    those, the most covisible first. When every placement's line of sight to the target on the ground
+    camera's principal ray is blocked, the same with the other targets of surface_targets, in turn."""
+    gc = conf["ground"]
+    min_cov = float(gc["min_covisible"] or 0.0)
+    surface = (
+        scene.ground_surface(g, conf, 1.5 * gc["max_target_m"], gc["surface"])
+        if min_cov > 0 and scene.depth_fn
+        else None
+    )
+    T, how = ground_target(g, scene, conf)
+    out, weak = _placements(g, T, how, surface, scene, conf)
+    if not out and not weak:
+        for T in surface_targets(g, scene, conf):
+            out, weak = _placements(g, T, "surface", surface, scene, conf)
+            if out or weak:
+                logger.info(
+                    "%s: every line of sight to its target is blocked; another point it sees serves", g
+                )
+                break
+    if not out and weak:  # a view that sees part of the ground camera's surface beats none
+        weak.sort(key=lambda cv: -cv[0])
+        logger.info(
+            "%s: no placement sees %.0f%% of what the ground camera sees; the best sees %.0f%% (%s)",
+            g,
+            100 * min_cov,
+            100 * weak[0][0],
+            weak[0][1].name,
+        )
+        return [v for _, v in weak]
+    return out
+
+
+def _placements(
+    g: str, T: np.ndarray, how: str, surface: np.ndarray | None, scene: Scene, conf: dict
+) -> tuple[list[ViewSpec], list[tuple[float, ViewSpec]]]:
+    """The unoccluded placements looking at target T: (those that see min_covisible of `surface` or
+    unchecked, [(covisible fraction, view)] of those that see less)."""
+    gc = conf["ground"]
+    min_cov = float(gc["min_covisible"] or 0.0)
+    cam_g, pose_g = scene.ground_cameras[g], scene.ground_poses[g]
+    C_g = pose_g.center
+    back = _horizontal(C_g - T)
+    if back is None:
+        back = _horizontal(-optical_axis(pose_g))
+    if back is None:
+        back = np.array([0.0, -1.0, 0.0])
+    cam = scaled_camera(cam_g, gc["max_width"], gc["fov_scale"])
+    # the aerial camera seeing T most like the ground camera does (oblique ones only)
+    probe = ViewSpec("probe", "ground-aware", g, cam, look_at(C_g + [0, 0, 10.0], T), T)
+    anchors = [
+        n for _, n in aerial_candidates(probe, scene, merge_conf(conf, {"candidates": {"skip_nadir": True}}))
+    ]
+    out, weak = [], []  # weak: unoccluded but below min_cov, (covisible fraction, view)
+    for height, placement in gc["placements"]:
+        if placement == "above":
+            C = C_g + np.array([0.0, 0.0, height])
+        elif placement == "back":
+            C = C_g + height * back + np.array([0.0, 0.0, height])
+        elif placement == "aerial":
+            if not anchors:
+                continue
+            A = scene.aerial_poses[anchors[0]].center
+            dz = A[2] - C_g[2]
+            if dz <= height:
+                continue
+            C = C_g + (height / dz) * (A - C_g)
+        else:
+            raise ValueError(f"unknown placement {placement!r} (above, back, aerial)")
+        if np.linalg.norm(T - C) < 2.0 or C[2] < scene.terrain_z + 1.0:
+            continue
+        if scene.occluded(C, T, cam, gc["occlusion_ratio"]):
+            logger.debug("%s %s %.0f m: the target is occluded", g, placement, height)
+            continue
+        pose = look_at(C, T)
+        cov = scene.covisible_fraction(surface, cam, pose, gc["covisibility_width"])
+        view = ViewSpec(
+            f"G-{_stem(g)}-{placement}{int(round(height)):02d}",
+            "ground-aware",
+            g,
+            cam,
+            pose,
+            T,
+            meta={
+                "height_m": float(height),
+                "placement": placement,
+                "target_from": how,
+                "pitch_deg": pitch_deg(pose),
+                **({"covisible": cov} if cov is not None else {}),
+                **({"anchor": anchors[0]} if placement == "aerial" else {}),
+            },
+        )
+        if cov is not None and cov < min_cov:
+            logger.debug(
+                "%s %s %.0f m: sees %.0f%% of what the ground camera sees", g, placement, height, 100 * cov
+            )
+            weak.append((cov, view))
+            continue
+        out.append(view)
+    return out, weak
+
+
+def plan_ground_aware(scene: Scene, conf: dict, n_per_ground: int) -> list[ViewSpec]:
+    views = []
+    for g in sorted(scene.ground_poses):
+        cands = ground_view_candidates(g, scene, conf)
+        for v in cands[:n_per_ground]:
+            views.append(assign_candidates(v, scene, conf))
+        if not cands:
+            logger.warning("%s: no unoccluded intermediate view", g)
+    return views

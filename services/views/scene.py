@@ -1,0 +1,261 @@
+"""What the view planners know of the scene: the aerial model's cameras, poses and points, the ground
+cameras' POS poses in its frame (heights fused with the terrain under them), and an optional depth
+probe (a renderer of the aerial 3DGS) for targets, occlusion and covisibility."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from services.colmap_model import Camera, Pose, read_cameras_json, read_model
+from services.conf import merge_conf
+from services.geometry import look_at, optical_axis, pos_in_frame
+from services.pos import LocalFrame, PosRecord, read_pos
+from services.sfm.georef import read_georef_frame
+from services.views.confs import _BASE
+from services.views.rays import depth_at_center, probe_camera, ray_plane, ray_target_points, unproject
+
+logger = logging.getLogger("midview.viewpoints")
+
+# depth_fn(camera, pose) -> z-depth map (H, W) float, 0 where nothing was hit
+DepthFn = Callable[[Camera, Pose], np.ndarray]
+
+
+@dataclass
+class Scene:
+    """What the planners know: aerial model poses and points, ground POS poses (model frame), cameras."""
+
+    aerial_cameras: dict[str, Camera]  # per image name
+    aerial_poses: dict[str, Pose]
+    ground_cameras: dict[str, Camera]
+    ground_poses: dict[str, Pose]  # from the POS, in the aerial model's frame
+    ground_std: dict[str, tuple[float, float, float]]  # std_xy (m), std_z (m), std_att (deg)
+    points: np.ndarray  # (P, 3) sparse points of the aerial model
+    terrain_z: float
+    depth_fn: DepthFn | None = None
+    ground_heights: dict[str, dict] = field(default_factory=dict)  # see place_ground_on_terrain
+
+    def target(
+        self, camera: Camera, pose: Pose, conf: dict, min_dist: float = 0.0, max_dist: float = np.inf
+    ) -> tuple[np.ndarray | None, str]:
+        """Where the principal ray meets the scene: (T, method) or (None, "none")."""
+        c, d = pose.center, optical_axis(pose)
+        tc = conf["target"]
+        probe = self.depth_probe(camera, pose, tc["probe_width"])  # a failed probe falls back to the points
+        z = depth_at_center(probe[1], tc["depth_window"]) if probe is not None else None
+        if z is not None and min_dist <= z <= max_dist:
+            return c + z * d, "depth"
+        t = ray_target_points(
+            c, d, self.points, tc["ray_cone_deg"], tc["min_points"], tc["quantile"], min_dist, max_dist
+        )
+        if t is not None:
+            return c + t * d, "points"
+        t = ray_plane(c, d, self.terrain_z)
+        if t is not None and min_dist <= t <= max_dist:
+            return c + t * d, "terrain"
+        return None, "none"
+
+    def occluded(self, center: np.ndarray, target: np.ndarray, camera: Camera, ratio: float) -> bool:
+        """Whether something lies between `center` and `target` (depth probe, else sparse points)."""
+        dist = float(np.linalg.norm(target - center))
+        probe = self.depth_probe(camera, look_at(center, target), 96)
+        z = depth_at_center(probe[1], 3) if probe is not None else None
+        if z is not None:
+            return z < ratio * dist
+        if len(self.points) == 0:
+            return False
+        d = (target - center) / dist
+        v = self.points - center[None]
+        t = v @ d
+        r = np.linalg.norm(v - t[:, None] * d[None], axis=1)
+        return int(((t > 0.5) & (t < ratio * dist) & (r < 0.75)).sum()) >= 3
+
+    def depth_probe(self, camera: Camera, pose: Pose, width: int) -> tuple[Camera, np.ndarray] | None:
+        """(probe camera, z-depth map) of the camera scaled to `width` pixels; None without a depth
+        probe or when it fails."""
+        if self.depth_fn is None:
+            return None
+        pc = probe_camera(camera, width)
+        try:
+            return pc, np.asarray(self.depth_fn(pc, pose), float)
+        except Exception as e:
+            logger.debug("depth probe failed: %s", e)
+            return None
+
+    def visible_surface(self, camera: Camera, pose: Pose, width: int, max_dist: float) -> np.ndarray | None:
+        """(N, 3) world points of what the camera sees (depth probe `width` pixels wide, depths up to
+        max_dist); None without a depth probe."""
+        probe = self.depth_probe(camera, pose, width)
+        if probe is None:
+            return None
+        pc, d = probe
+        v, u = np.nonzero(np.isfinite(d) & (d > 0) & (d <= max_dist))
+        return unproject(pc.K, pose, u, v, d[v, u])
+
+    def visible_points(
+        self, camera: Camera, pose: Pose, width: int, max_dist: float, cell: int = 4
+    ) -> np.ndarray:
+        """(N, 3) sparse points of the aerial model the camera sees: in its image (scaled to `width`
+        pixels), up to max_dist away, the nearest in each `cell` x `cell` pixels (those behind it hidden).
+        The ground cameras' surface where a depth probe from their height is not to be trusted (a 3DGS
+        trained on aerial images, seen from the street)."""
+        pc = probe_camera(camera, width)
+        if len(self.points) == 0:
+            return np.zeros((0, 3))
+        uv, z = pose.project(pc.K, self.points)
+        inside = (
+            (z > 0.5) & (z <= max_dist) & (uv >= 0).all(1) & (uv[:, 0] < pc.width) & (uv[:, 1] < pc.height)
+        )
+        idx = np.flatnonzero(inside)
+        cells = (uv[idx] // cell).astype(np.int64)
+        key = cells[:, 1] * (pc.width // cell + 1) + cells[:, 0]
+        order = np.lexsort((z[idx], key))
+        first = np.ones(len(order), bool)
+        first[1:] = key[order][1:] != key[order][:-1]
+        return self.points[idx[order[first]]]
+
+    def ground_surface(self, g: str, conf: dict, max_dist: float, kind: str) -> np.ndarray | None:
+        """What ground camera g sees, for covisibility checks: `kind` "points" (visible_points) or
+        "depth" (visible_surface: its depth probe), probed conf["ground"]["covisibility_width"] pixels
+        wide; None when there is nothing."""
+        width = conf["ground"]["covisibility_width"]
+        cam, pose = self.ground_cameras[g], self.ground_poses[g]
+        if kind == "points":
+            pts = self.visible_points(cam, pose, width, max_dist)
+        elif kind == "depth":
+            pts = self.visible_surface(cam, pose, width, max_dist)
+        else:
+            raise ValueError(f"unknown surface {kind!r} (points, depth)")
+        return pts if pts is not None and len(pts) else None
+
+    def covisible_fraction(
+        self,
+        points: np.ndarray,
+        camera: Camera,
+        pose: Pose,
+        width: int,
+        probe: tuple[Camera, np.ndarray] | None = None,
+    ) -> float | None:
+        """The fraction of `points` (N, 3) the camera sees: in its image and not hidden (its depth probe,
+        or `probe` made by depth_probe, agrees with their depth within 5% + 0.5 m); None without a depth
+        probe or points."""
+        if points is None or len(points) == 0:
+            return None
+        probe = probe or self.depth_probe(camera, pose, width)
+        if probe is None:
+            return None
+        pc, d = probe
+        uv, z = pose.project(pc.K, points)
+        ui, vi = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        inside = (z > 0) & (ui >= 0) & (ui < pc.width) & (vi >= 0) & (vi < pc.height)
+        dz = d[vi[inside], ui[inside]]
+        seen = np.isfinite(dz) & (np.abs(dz - z[inside]) <= 0.05 * z[inside] + 0.5)
+        return float(seen.sum() / len(points))
+
+
+def load_scene(
+    sparse: str | Path,
+    pos: str | Path | list[PosRecord],
+    cameras: str | Path | dict[str, Camera],
+    georef: str | Path | LocalFrame,
+    depth_fn: DepthFn | None = None,
+    conf: dict | None = None,
+) -> Scene:
+    """The planners' inputs: the aerial model, the ground POS in its frame, the ground camera."""
+    import pycolmap
+
+    conf = merge_conf(_BASE, conf or {})
+    cams_a, poses_a = read_model(sparse)
+    cams_a = {n: c for n, c in cams_a.items() if n.split("/", 1)[0] == "aerial"}
+    poses_a = {n: p for n, p in poses_a.items() if n in cams_a}
+    rec = pycolmap.Reconstruction(str(sparse))
+    points = np.array([p.xyz for _, p in sorted(rec.points3D.items())], float).reshape(-1, 3)
+    frame = georef if isinstance(georef, LocalFrame) else read_georef_frame(georef)
+    records = read_pos(pos) if isinstance(pos, str | Path) else list(pos)
+    cameras = read_cameras_json(cameras) if isinstance(cameras, str | Path) else dict(cameras)
+    ground = {n: v for n, v in pos_in_frame(records, frame).items() if n.split("/", 1)[0] == "ground"}
+    if "ground" not in cameras:
+        raise ValueError("cameras.json has no 'ground' camera")
+    ground_poses, ground_std = {}, {}
+    for n, (pose, _, r) in sorted(ground.items()):
+        if pose is None:
+            logger.warning("%s: the POS has no attitude; no views planned for it", n)
+            continue
+        ground_poses[n] = pose
+        ground_std[n] = r.std_or_default()
+    terrain = scene_terrain_z(points, ground_poses, conf["ground"]["camera_height_m"])
+    scene = Scene(
+        cams_a,
+        poses_a,
+        {n: cameras["ground"] for n in ground_poses},
+        ground_poses,
+        ground_std,
+        points,
+        terrain,
+        depth_fn,
+    )
+    if conf["ground"]["height_from_terrain"]:
+        place_ground_on_terrain(scene, conf["ground"])
+    return scene
+
+
+def scene_terrain_z(points: np.ndarray, ground_poses: dict[str, Pose], camera_height_m: float) -> float:
+    """The scene's terrain height: a low quantile of the sparse points (N, 3) or the ground cameras' median
+    height minus camera_height_m, the lower of the two (over a dense block the aerial model may hold
+    roofs and no street); 0 without either."""
+    z_pts = float(np.quantile(points[:, 2], 0.05)) if len(points) >= 20 else None
+    z_cam = (
+        float(np.median([p.center[2] for p in ground_poses.values()])) - camera_height_m
+        if ground_poses
+        else None
+    )
+    known = [z for z in (z_pts, z_cam) if z is not None]
+    return min(known) if known else 0.0
+
+
+def terrain_height(scene: Scene, xy: np.ndarray, gc: dict) -> float | None:
+    """Height of the terrain at the horizontal position `xy`: the `terrain_quantile` of the heights of
+    the sparse points within `terrain_radius_m` (the street, not the roofs and facades beside it); None
+    with fewer than `terrain_min_points` there."""
+    if len(scene.points) == 0:
+        return None
+    near = (
+        np.linalg.norm(scene.points[:, :2] - np.asarray(xy, float)[None, :2], axis=1)
+        <= gc["terrain_radius_m"]
+    )
+    if near.sum() < gc["terrain_min_points"]:
+        return None
+    return float(np.quantile(scene.points[near, 2], gc["terrain_quantile"]))
+
+
+def place_ground_on_terrain(scene: Scene, gc: dict) -> dict[str, dict]:
+    """Move each ground camera's POS height towards camera_height_m above the terrain under it: the two
+    heights weighted by the inverse of their variances (the POS's std_z, terrain_std_m), which also
+    becomes the camera's std_z. Updates `scene` and returns {name: heights} (also scene.ground_heights)."""
+    out = {}
+    for n, pose in sorted(scene.ground_poses.items()):
+        C = pose.center
+        ground = terrain_height(scene, C[:2], gc)
+        if ground is None:
+            continue
+        s_xy, s_pos, s_att = scene.ground_std[n]
+        s_ter = float(gc["terrain_std_m"])
+        w_pos, w_ter = 1.0 / max(s_pos, 1e-6) ** 2, 1.0 / max(s_ter, 1e-6) ** 2
+        z = (w_pos * C[2] + w_ter * (ground + gc["camera_height_m"])) / (w_pos + w_ter)
+        scene.ground_poses[n] = Pose.from_center(pose.R.T, np.array([C[0], C[1], z]))
+        scene.ground_std[n] = (s_xy, float((w_pos + w_ter) ** -0.5), s_att)
+        out[n] = {"pos_z": float(C[2]), "terrain_z": ground, "z": float(z)}
+    if out:
+        moved = np.array([abs(d["z"] - d["pos_z"]) for d in out.values()])
+        logger.info(
+            "ground cameras placed %.1f m above the terrain: heights moved by %.2f m (median), %.2f m (max)",
+            gc["camera_height_m"],
+            float(np.median(moved)),
+            float(moved.max()),
+        )
+    scene.ground_heights = out
+    return out
