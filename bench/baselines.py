@@ -20,8 +20,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from services import pairs as pairs_mod  # noqa: E402
 from services.matching import direct  # noqa: E402
+from services.matching import pairs as pairs_mod  # noqa: E402
 from services.synth import SCENE_FILES, scene_complete  # noqa: E402
 from shared.images import list_images  # noqa: E402
 from shared.logging import setup_logging  # noqa: E402

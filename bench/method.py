@@ -99,7 +99,7 @@ def seed_matches(job: pipeline.Job, others: list[pipeline.Job]) -> None:
 def truth_alignment(scene: Path, sparse: Path) -> tuple[float, np.ndarray, np.ndarray]:
     """truth_from_model similarity fitted on the aerial camera centres."""
     from services.colmap_model import read_model
-    from services.views.rendering import _kabsch
+    from services.synth import similarity_fit as _kabsch
 
     _, est = read_model(sparse)
     _, gt = read_model(scene / "gt" / "sparse")
@@ -130,8 +130,8 @@ def pnp_accuracy(scene: Path, job: pipeline.Job) -> dict:
 
 def direct_same_budget(scene: Path, base: pipeline.Job, out: Path) -> Path:
     """Direct ALIKED+LightGlue on the POS pairs with midview's features (its keypoint budget)."""
-    from services import pairs as pairs_mod
     from services.matching import direct
+    from services.matching import pairs as pairs_mod
     from services.matching.views import feature_conf
     from shared.images import list_images
 

@@ -57,7 +57,7 @@ def view_metrics(rgb: np.ndarray, depth: np.ndarray, rgb_gt: np.ndarray, depth_g
 
 def features(conf: dict, rgb: np.ndarray) -> dict:
     """ALIKED features of a render, with its size as the matcher wants it."""
-    from services.features import extract
+    from services.matching.features import extract
 
     feats = extract(conf["features"], rgb)
     feats["image_size"] = np.array([rgb.shape[1], rgb.shape[0]], np.int64)

@@ -45,8 +45,8 @@ def direct(
             if not path.is_file():
                 _fail(f"{what} {path} does not exist (needed by --pairs pos)")
 
-    from services import pairs as pairs_mod
     from services.matching import direct as direct_mod
+    from services.matching import pairs as pairs_mod
     from services.pos import PosError
     from shared.images import ImageError, list_images
 

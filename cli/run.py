@@ -288,8 +288,8 @@ def direct_baselines(
     """Direct SIFT and ALIKED+LightGlue (features `aliked_features`, midview's) on the POS pairs.
     `reuse_features`: a feature file of that conf (the job's cache) to start from. Returns {label: (match
     file, matching conf)}."""
-    from services import pairs as pairs_mod
     from services.matching import direct
+    from services.matching import pairs as pairs_mod
     from shared.images import list_images
 
     names = list_images(scene / "images")
@@ -330,7 +330,7 @@ def _baselines_process(scene: str, out_dir: str, aliked_features: dict, sift_con
     import torch
 
     torch.set_num_threads(1)
-    from services import features as features_mod
+    from services.matching import features as features_mod
     from shared.images import list_images
 
     t0 = time.perf_counter()
@@ -525,7 +525,7 @@ def demo(
 
 def _demo_sift_conf() -> dict:
     """SIFT of the direct baseline for the demo: 4096 features at 1024 px (the bench uses 8192 at 1600)."""
-    from services import features as features_mod
+    from services.matching import features as features_mod
 
     c = json.loads(json.dumps(features_mod.confs["sift"]))
     c["model"]["max_num_features"] = 4096

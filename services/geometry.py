@@ -1,6 +1,6 @@
 """Camera geometry shared by the pipeline steps: cameras and poses (services.colmap_model), a camera
 looking at a point, optical axes and the angles between directions and of rotations, cameras at a
-smaller image size, poses of pycolmap images and of POS records in a local frame.
+smaller image size, poses of pycolmap images and of POS records in a local frame, depth maps read at pixels.
 Conventions: world-to-camera poses (x_cam = R x_world + t), ENU world (z up), COLMAP pixels."""
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ __all__ = [
     "Pose",
     "angle_deg",
     "look_at",
+    "lookup_depth",
     "optical_axis",
     "pitch_deg",
     "pos_in_frame",
@@ -115,4 +116,38 @@ def pos_in_frame(
     for r, c in zip(recs, xyz, strict=True):
         pose = Pose.from_center(r.R_world_from_cam, c) if r.R_world_from_cam is not None else None
         out[r.name] = (pose, c, r)
+    return out
+
+
+def lookup_depth(depth: np.ndarray, uv: np.ndarray, interp: str = "bilinear") -> np.ndarray:
+    """Depth (N,) at COLMAP pixels uv (N, 2); 0 outside the image or where there is no surface.
+
+    Depth at row i, col j belongs to pixel (j + 0.5, i + 0.5). 'nearest' takes that pixel.
+    'bilinear' interpolates the 2x2 pixel centres around uv where they are all valid and continuous
+    (max/min <= 1.05), and falls back to nearest across depth edges, so that a sub-pixel keypoint on
+    a slanted surface gets a sub-pixel accurate depth without blending foreground and background.
+    """
+    h, w = depth.shape
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    out = np.zeros(len(uv), np.float64)
+    inside = np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    if not inside.any():
+        return out
+    x, y = uv[inside, 0], uv[inside, 1]
+    d = depth[np.minimum(y.astype(int), h - 1), np.minimum(x.astype(int), w - 1)].astype(np.float64)
+    if interp == "bilinear":
+        u, v = np.clip(x - 0.5, 0, w - 1), np.clip(y - 0.5, 0, h - 1)
+        j0, i0 = (
+            np.minimum(u.astype(int), w - 2 if w > 1 else 0),
+            np.minimum(v.astype(int), h - 2 if h > 1 else 0),
+        )
+        j1, i1 = np.minimum(j0 + 1, w - 1), np.minimum(i0 + 1, h - 1)
+        fu, fv = u - j0, v - i0
+        q = np.stack([depth[i0, j0], depth[i0, j1], depth[i1, j0], depth[i1, j1]], 1).astype(np.float64)
+        wts = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], 1)
+        ok = (q.min(1) > 0) & (q.max(1) <= 1.05 * q.min(1))
+        d = np.where(ok, (q * wts).sum(1), d)
+    elif interp != "nearest":
+        raise ValueError(f"unknown depth interpolation {interp!r}")
+    out[inside] = d
     return out

@@ -50,7 +50,7 @@ def test_view_metrics(bench, truth):
 
 def test_matchability_falls_with_blur_and_misplacement(bench, truth):
     rgb, _ = truth
-    from services.features import confs
+    from services.matching.features import confs
 
     conf = {"features": confs["aliked"], "matcher": {"name": "lightglue", "features": "aliked"}}
     feats = bench.features(conf, rgb)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cli.run import BaselinesBeside, direct_baselines
-from services import features as features_mod
+from services.matching import features as features_mod
 from services.matching.views import feature_conf
 from shared.images import list_images
 from shared.matchfile import MatchFile

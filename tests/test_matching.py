@@ -8,9 +8,8 @@ import pytest
 from typer.testing import CliRunner
 
 from cli import match as match_cli
-from services import features, pairs
 from services.colmap_model import Camera, write_cameras_json
-from services.matching import direct
+from services.matching import direct, features, pairs
 from services.matching import views as mviews
 from services.pos import LocalFrame, PosRecord, write_pos_csv, ypr_to_matrix
 from shared.matchfile import MatchFile

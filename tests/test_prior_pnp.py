@@ -1,4 +1,4 @@
-"""PnP whose hypotheses must agree with the POS (services.prior_pnp) and the reducer's use of it: a
+"""PnP whose hypotheses must agree with the POS (services.reduce.prior_pnp) and the reducer's use of it: a
 ground image whose true pose is outvoted by a repeated facade is still localized, at the true pose."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 from services import reduce as transfer
 from services.colmap_model import Camera
 from services.geometry import look_at
-from services.prior_pnp import prior_gated_pnp, reprojection_errors
+from services.reduce.prior_pnp import prior_gated_pnp, reprojection_errors
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
 TRUE = look_at(np.array([0.0, 0.0, 1.6]), np.array([0.0, 20.0, 4.0]))

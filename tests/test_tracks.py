@@ -1,4 +1,4 @@
-"""Aerial track completion (services/tracks.py) on constructed cameras, keypoints and descriptors."""
+"""Aerial track completion (services/reduce/tracks.py) on constructed cameras, keypoints and descriptors."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 
 from services.colmap_model import Camera
 from services.geometry import look_at
-from services.tracks import complete_tracks, guided_matches
+from services.reduce.tracks import complete_tracks, guided_matches
 
 CAM = Camera("PINHOLE", 400, 300, [350.0, 350.0, 200.0, 150.0])
 

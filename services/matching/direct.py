@@ -1,5 +1,5 @@
 """Direct aerial-ground matching (the baselines): local features matched image to image, then
-verified by a fundamental-matrix RANSAC. Features are extracted once per image (services.features).
+verified by a fundamental-matrix RANSAC. Features are extracted once per image (services.matching.features).
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from services import features as features_mod
-from services.pairs import Pair, read_pairs
+from services.matching import features as features_mod
+from services.matching.pairs import Pair, read_pairs
 from shared.logging import stage
 from shared.matchfile import MatchFile, PairMatches
 

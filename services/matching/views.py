@@ -2,7 +2,7 @@
 
 One unit of work per view (`match_view`), independent of every other view, so that the service can fan
 it out to workers. The render's features are extracted on the fly (a render is seen once); the aerial
-and ground images' features come from the shared cache (services.features), which `prepare_features`
+and ground images' features come from the shared cache (services.matching.features), which `prepare_features`
 fills once before the fan-out (workers only read it). Each pair render <-> image is matched
 (LightGlue by default) and verified by a fundamental-matrix RANSAC (services.matching.direct).
 
@@ -25,8 +25,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from services import features as features_mod
 from services.matching import direct
+from services.matching import features as features_mod
 from shared.matchfile import MatchFile, PairMatches
 
 logger = logging.getLogger("midview.matching.views")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from services.tracks import default_conf as tracks_default_conf
+from services.reduce.tracks import default_conf as tracks_default_conf
 
 default_conf: dict[str, Any] = {
     "min_score": 0.0,  # render matches below this LightGlue score are not transferred
@@ -55,12 +55,13 @@ default_conf: dict[str, Any] = {
         # even when the pose is not accepted (spread, POS): the matches are verified, the pose is not used
         "verify_on_consensus": True,
         # when the pose with the most inliers disagrees with the POS, a second RANSAC keeps only the
-        # hypotheses that agree with it (services.prior_pnp): repeated facades can outvote the true pose
+        # hypotheses that agree with it (services.reduce.prior_pnp): repeated facades can outvote the
+        # true pose
         "prior_gated": True,
         "seed": 0,
     },
-    # aerial points observed in every aerial image that sees them (services.tracks: guided matching with
-    # the matching features' descriptors), so a link reaches all their aerial images
+    # aerial points observed in every aerial image that sees them (services.reduce.tracks: guided
+    # matching with the matching features' descriptors), so a link reaches all their aerial images
     "tracks": dict(tracks_default_conf),
     "fundamental": {"enabled": True, "threshold": 3.0, "confidence": 0.999, "max_iters": 10000},
     "min_pair_matches": 1,  # verified pairs with fewer matches are written without inliers

@@ -16,9 +16,9 @@ from services.colmap_model import Camera, Pose
 from services.geometry import rotation_angle_deg
 from services.pos import DEFAULT_STD_ATT, DEFAULT_STD_XY, DEFAULT_STD_Z
 from services.pose_uncertainty import fit_position_std
-from services.prior_pnp import prior_gated_pnp, reprojection_errors
 from services.reduce.merge import Pairs
 from services.reduce.observations import image_set
+from services.reduce.prior_pnp import prior_gated_pnp, reprojection_errors
 
 logger = logging.getLogger("midview.reduce")
 
@@ -124,7 +124,7 @@ def _solve_pnp(
     kp: np.ndarray, X: np.ndarray, camera: Camera, prior: Pose | None, prior_std: PosStd | None, pc: dict
 ) -> tuple[Pose | None, str]:
     """(pose, solver): pycolmap's LO-RANSAC pose; when it disagrees with the POS (and prior_gated), the
-    best pose of a second RANSAC that keeps only hypotheses agreeing with it (services.prior_pnp)."""
+    best pose of a second RANSAC that keeps only hypotheses agreeing with it (services.reduce.prior_pnp)."""
     import pycolmap
 
     opts = pycolmap.AbsolutePoseEstimationOptions()
@@ -240,7 +240,7 @@ def ground_priors(
     """Ground POS poses in the aerial model frame and their standard deviations."""
     from services.geometry import pos_in_frame
     from services.pos import read_pos
-    from services.sfm.georef import read_georef_frame
+    from services.sfm import read_georef_frame
 
     records = read_pos(pos) if isinstance(pos, str | Path) else list(pos)
     frame = read_georef_frame(georef)

@@ -56,7 +56,7 @@ def verify_pairs(
     """The reducer's output pairs: each pair's matches (M, 2), scores, views, X and inliers, the matches
     that the pose check verified and then a fundamental-matrix RANSAC (pairs with >= 8 of them) kept;
     pairs left with fewer than min_pair_matches get no inliers."""
-    from services.matching.direct import verify_fundamental
+    from services.matching import verify_fundamental
 
     fc = conf["fundamental"]
     f_conf = {"threshold": fc["threshold"], "confidence": fc["confidence"], "max_iters": fc["max_iters"]}

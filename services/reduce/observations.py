@@ -37,7 +37,7 @@ def image_set(name: str) -> str:
 def render_points(view: ViewData, idx: np.ndarray, conf: dict) -> np.ndarray:
     """3D points (n, 3) of render keypoints `idx` through the view's depth; NaN where the depth is
     missing or on a depth edge. All NaN when the view has no depth."""
-    from services.evaluation.common import lookup_depth
+    from services.geometry import lookup_depth
 
     rname = next(n for n in view.keypoints if image_set(n) == "views")
     out = np.full((len(idx), 3), np.nan)
@@ -115,7 +115,7 @@ def load_views(
     views_json: str | Path, match_files: list[str | Path], with_depth: bool = True
 ) -> tuple[list[ViewData], dict]:
     """The rendered views (views/views.json, with depths) and their match files, sorted by view name."""
-    from services.matching.views import read_view_matches
+    from services.matching import read_view_matches
     from services.views import read_render
 
     views_json = Path(views_json)
@@ -151,7 +151,7 @@ def load_aerial_features(path: str | Path, names: list[str]) -> dict[str, dict[s
     """Keypoints and descriptors of the aerial images `names` found in a feature cache."""
     import h5py
 
-    from services.features import load_features
+    from services.matching import load_features
 
     path = Path(path)
     if not path.is_file():

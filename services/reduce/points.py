@@ -11,7 +11,7 @@ import numpy as np
 from services.colmap_model import Camera, Pose
 from services.conf import merge_conf
 from services.reduce.observations import ViewData, _take, image_set, link_identity
-from services.tracks import complete_tracks
+from services.reduce.tracks import complete_tracks
 
 Candidates = dict[tuple[str, str], list[dict[str, Any]]]
 
@@ -133,7 +133,7 @@ def _point_checks(
     """Whether X reprojects onto its render keypoint, is seen under a real angle by the render and an
     aerial image, and agrees loosely with the rendered depth (each failure counted in n_rej; the
     relative depth difference appended to depth_err)."""
-    from services.evaluation.common import lookup_depth
+    from services.geometry import lookup_depth
 
     uv, z = view.pose.project(view.camera.K, X[None])
     if z[0] <= 0 or np.linalg.norm(uv[0] - kp_r) > tc["render_px"]:
@@ -169,7 +169,7 @@ def link_points(
     meet at their common 3D points. Returns [(aerial, ia, ig, score, view, X)]."""
     from scipy.spatial import cKDTree
 
-    from services.evaluation.common import lookup_depth
+    from services.geometry import lookup_depth
 
     lc = conf["link"]
     out = []

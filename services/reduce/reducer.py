@@ -97,7 +97,7 @@ def pose_document(poses: dict[str, dict], georef: str | Path | None) -> dict:
     """ground_poses.json: PnP poses in the model frame (and WGS84 with the georef frame)."""
     frame = None
     if georef is not None:
-        from services.sfm.georef import read_georef_frame
+        from services.sfm import read_georef_frame
 
         frame = read_georef_frame(georef)
     out = {}
@@ -142,7 +142,7 @@ def main(
     features: str | Path | None = None,
 ) -> Path:
     """Run the reducer; returns out_dir/matches.h5 (see services.reduce for the other outputs).
-    `features`: the matching features' cache (services.features), for the aerial track completion."""
+    `features`: the matching features' cache (services.matching.features), for the aerial track completion."""
     conf = merge_conf(default_conf, conf)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

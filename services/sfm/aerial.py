@@ -7,7 +7,7 @@ Steps (each a `shared.logging.stage`), all in pycolmap 4 on one COLMAP database:
    unreadable or truncated files; POS is checked against the images (both directions).
 2. features: SIFT (pycolmap, downscaled to `max_image_size`, keypoints at full resolution) into the
    database, one camera for the set (intrinsics prior from cameras.json, else EXIF), or ALIKED
-   (services.features) imported into the database. ALIKED and LightGlue are not rotation invariant:
+   (services.matching.features) imported into the database. ALIKED and LightGlue are not rotation invariant:
    with `features.upright = "pos"` each image is turned by the quarter turns that bring its view of
    the ground to north up (from its POS attitude), so that overlapping images are matched at about one
    in-plane orientation (the nadir images of a serpentine flight are 180 degrees apart from one line
@@ -332,11 +332,11 @@ def unrotate_keypoints(kp: np.ndarray, k: int, width: int, height: int) -> np.nd
 
 
 def aliked_conf(conf: dict) -> dict:
-    """The services.features conf of the ALIKED path (a name or a dict) with `features` overrides."""
-    from services import features as features_mod
+    """The services.matching.features conf of the ALIKED path (a name or a dict) with `features` overrides."""
+    from services import matching
 
     fc = conf["features"]
-    base = features_mod.confs[fc["conf"]] if isinstance(fc["conf"], str) else fc["conf"]
+    base = matching.feature_confs[fc["conf"]] if isinstance(fc["conf"], str) else fc["conf"]
     model = {**base["model"], **fc.get("model", {})}
     pre = {**base["preprocessing"], **fc.get("preprocessing", {})}
     out = {**base, "model": model, "preprocessing": pre}
@@ -349,25 +349,26 @@ def extract_aliked(
     conf: dict, root: Path, names: list[str], turns: dict[str, int], cache: Path
 ) -> dict[str, dict]:
     """ALIKED of every image, each turned by its quarter turns (`turns`): unturned images through the
-    services.features cache, turned ones in memory. Per image the features with keypoints in the turned
-    image's pixels (for LightGlue, with its size), and `image_keypoints` and `own_size` of the image."""
-    from services import features as features_mod
+    services.matching.features cache, turned ones in memory. Per image the features with keypoints in
+    the turned image's pixels (for LightGlue, with its size), and `image_keypoints` and `own_size` of
+    the image."""
+    from services import matching
     from shared.images import read_image
 
     fconf = aliked_conf(conf)
     plain = [n for n in names if turns.get(n, 0) == 0]
     if plain:
-        features_mod.main(fconf, root, plain, cache)
+        matching.extract_features(fconf, root, plain, cache)
     feats: dict[str, dict] = {}
     for n in tqdm(names, desc="ALIKED", unit="img", disable=not len(plain) < len(names)):
         k = turns.get(n, 0)
         if k == 0:
-            f = features_mod.load_features(cache, n)
+            f = matching.load_features(cache, n)
             f["image_keypoints"], f["own_size"] = f["keypoints"], f["image_size"]
         else:
             image = read_image(root / n, grayscale=fconf["preprocessing"].get("grayscale", False))
             h, w = image.shape[:2]
-            f = features_mod.extract(fconf, np.ascontiguousarray(np.rot90(image, k)))
+            f = matching.extract(fconf, np.ascontiguousarray(np.rot90(image, k)))
             f["image_size"] = np.array([w, h] if k % 2 == 0 else [h, w], np.int64)
             f["image_keypoints"], f["own_size"] = (
                 unrotate_keypoints(f["keypoints"], k, w, h),
@@ -421,7 +422,7 @@ def match_aliked(
 ) -> None:
     """LightGlue on each pair (each image at its turn), into the database; then pycolmap's
     geometric verification."""
-    from services.matching.direct import match_features
+    from services.matching import match_features
 
     db = pycolmap.Database.open(str(db_path))
     try:

@@ -26,8 +26,7 @@ import numpy as np
 import pycolmap
 from pyproj import CRS, Proj, Transformer
 
-from services.pos import LocalFrame, PosRecord
-from services.pos.attitude import matrix_to_opk, matrix_to_ypr
+from services.pos import LocalFrame, PosRecord, matrix_to_opk, matrix_to_ypr
 
 logger = logging.getLogger("midview.sfm.gis")
 

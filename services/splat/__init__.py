@@ -12,6 +12,7 @@ and "reference" (plain PyTorch, the test oracle); "auto" picks cuda when availab
 from services.conf import parse_overrides
 
 from .backend import rasterization, resolve_backend
+from .blocks import merge_blocks
 from .model import create_splats
 from .ply import load_ply, save_ply
 from .render import load_model, look_at, lowered_pose, render
@@ -28,6 +29,7 @@ __all__ = [
     "load_model",
     "load_ply",
     "load_scene",
+    "merge_blocks",
     "look_at",
     "lowered_pose",
     "main",

@@ -11,8 +11,10 @@ independent of any 3DGS code. Numba is only imported when rendering.
 from .gt import SCENE_FILES, SceneGT, load_gt, read_covisible, read_depth, scene_complete
 from .pipeline import main
 from .presets import confs
+from .truth_renderer import GroundTruthRenderer, similarity_fit
 
 __all__ = [
+    "GroundTruthRenderer",
     "SCENE_FILES",
     "SceneGT",
     "confs",
@@ -21,4 +23,5 @@ __all__ = [
     "read_covisible",
     "read_depth",
     "scene_complete",
+    "similarity_fit",
 ]

@@ -10,7 +10,7 @@ from services.colmap_model import Camera
 from services.conf import merge_conf
 from services.geometry import angle_deg, pitch_deg
 from services.pos import LocalFrame, PosRecord
-from services.sfm.georef import read_georef_frame
+from services.sfm import read_georef_frame
 from services.views.confs import _BASE, confs
 from services.views.ground_aware import plan_ground_aware
 from services.views.paper import plan_paper, select_paper

@@ -15,7 +15,7 @@ from services.colmap_model import Camera, Pose, read_cameras_json, read_model
 from services.conf import merge_conf
 from services.geometry import look_at, optical_axis, pos_in_frame
 from services.pos import LocalFrame, PosRecord, read_pos
-from services.sfm.georef import read_georef_frame
+from services.sfm import read_georef_frame
 from services.views.confs import _BASE
 from services.views.rays import depth_at_center, probe_camera, ray_plane, ray_target_points, unproject
 

@@ -2,7 +2,7 @@
 
 Database (out/database.db), a copy of the aerial SfM database with:
 - the aerial images' keypoints extended: the aerial SfM keypoints first (their indices, matches and
-  the aerial model's tracks stay valid), then the matching features (services.features cache) the
+  the aerial model's tracks stay valid), then the matching features (services.matching.features cache) the
   transferred matches refer to, at an offset;
 - the ground camera, the ground images with their matching features and their POS as pose priors;
 - ground-ground matches (POS neighbours, the matching features, an essential-matrix RANSAC whose

@@ -211,20 +211,19 @@ def ground_features(
     names: list[str], feature_path: Path, image_dir: Path, match_conf: dict
 ) -> dict[str, dict[str, np.ndarray]]:
     """The matching features of the ground images, from the cache, extracted where it lacks them."""
-    from services import features as features_mod
-    from services.matching.views import feature_conf
+    from services import matching
 
     out: dict[str, dict[str, np.ndarray] | None] = {}
     for n in names:
         try:
-            out[n] = features_mod.load_features(feature_path, n)
+            out[n] = matching.load_features(feature_path, n)
         except (KeyError, OSError):
             out[n] = None
     missing = [n for n, f in out.items() if f is None]
     if missing:
-        features_mod.main(feature_conf(match_conf), image_dir, missing, feature_path)
+        matching.extract_features(matching.view_feature_conf(match_conf), image_dir, missing, feature_path)
         for n in missing:
-            out[n] = features_mod.load_features(feature_path, n)
+            out[n] = matching.load_features(feature_path, n)
     return out
 
 
@@ -298,12 +297,12 @@ def _write_ground_ground(
     prog,
 ) -> int:
     """Ground pairs from the POS, matched and verified (verify_ground_pair); the number written."""
-    from services.matching import direct
+    from services.matching import match_features
 
     gp = ground_pairs(priors, sorted(g_feats), conf)
     n = 0
     for i, (g0, g1) in enumerate(gp):
-        mm, _ = direct.match_features(g_feats[g0], g_feats[g1], match_conf["matcher"])
+        mm, _ = match_features(g_feats[g0], g_feats[g1], match_conf["matcher"])
         f0, f1 = g_feats[g0]["keypoints"], g_feats[g1]["keypoints"]
         inl, rec = verify_ground_pair(
             f0, f1, mm, camera, priors[g0], priors[g1], prior_std[g0], prior_std[g1], conf
