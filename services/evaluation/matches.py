@@ -169,6 +169,46 @@ def _open_match_file(path: Path) -> MatchFile:
         raise EvaluationError(f"{path}: not a midview match file ({e})") from e
 
 
+def _pair_counts(
+    kp_a: np.ndarray,
+    kp_g: np.ndarray,
+    stored_inliers: np.ndarray | None,
+    aerial: str,
+    ground: str,
+    cams: dict,
+    poses: dict,
+    depths: DepthMaps,
+    conf: dict,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(inlier mask over the matches, GT-correct mask over the inliers) of one pair's matched keypoints
+    kp_a, kp_g (M, 2): the stored inliers, else the evaluator's F-RANSAC; GT-correct through the depths."""
+    if stored_inliers is not None:
+        inl = np.asarray(stored_inliers, bool)
+    else:
+        inl = ransac_inliers(
+            kp_a, kp_g, conf["ransac_px"], conf["ransac_confidence"], conf["ransac_max_iters"]
+        )
+    for name in (aerial, ground):
+        cam, d = cams[name], depths[name]
+        if d.shape != (cam.height, cam.width):
+            raise EvaluationError(f"depth map of {name} is {d.shape}, camera is {cam.width}x{cam.height}")
+    correct = gt_correct_mask(
+        kp_a[inl],
+        kp_g[inl],
+        cams[aerial],
+        poses[aerial],
+        depths[aerial],
+        cams[ground],
+        poses[ground],
+        depths[ground],
+        conf["gt_px"],
+        conf["depth_interp"],
+        conf["occlusion_rel"],
+        conf["occlusion_abs"],
+    )
+    return inl, correct
+
+
 def evaluate_matches(
     scene_dir: Path, match_file: Path, out_dir: Path | None = None, conf: dict | None = None
 ) -> dict:
@@ -207,32 +247,7 @@ def evaluate_matches(
                 rows.append(_pair_row(aerial, ground, overlap))
                 continue
             kp_a, kp_g = keypoints(aerial)[pm.matches[:, 0]], keypoints(ground)[pm.matches[:, 1]]
-            if pm.inliers is not None:
-                inl = np.asarray(pm.inliers, bool)
-            else:
-                inl = ransac_inliers(
-                    kp_a, kp_g, conf["ransac_px"], conf["ransac_confidence"], conf["ransac_max_iters"]
-                )
-            for name in (aerial, ground):
-                cam, d = cams[name], depths[name]
-                if d.shape != (cam.height, cam.width):
-                    raise EvaluationError(
-                        f"depth map of {name} is {d.shape}, camera is {cam.width}x{cam.height}"
-                    )
-            correct = gt_correct_mask(
-                kp_a[inl],
-                kp_g[inl],
-                cams[aerial],
-                poses[aerial],
-                depths[aerial],
-                cams[ground],
-                poses[ground],
-                depths[ground],
-                conf["gt_px"],
-                conf["depth_interp"],
-                conf["occlusion_rel"],
-                conf["occlusion_abs"],
-            )
+            inl, correct = _pair_counts(kp_a, kp_g, pm.inliers, aerial, ground, cams, poses, depths, conf)
             rows.append(
                 _pair_row(aerial, ground, overlap, len(pm.matches), int(inl.sum()), int(correct.sum()))
             )

@@ -165,39 +165,10 @@ def evaluate_sfm(
             est[img.name] = (m[:, :3], -m[:, :3].T @ m[:, 3])
     names = sorted(est)
     rows = {n: {"name": n, "set": image_set(n)} for n in names}
-    if names and frame is not None and truth is not None:
-        R_t, to_truth = to_truth_frame(frame, truth)
-        centres = to_truth(np.array([est[n][1] for n in names]))
-        for n, c in zip(names, centres, strict=True):
-            rows[n]["absolute_error"] = float(np.linalg.norm(c - gt_poses[n].center))
-            rows[n]["absolute_rotation_error"] = rotation_angle_deg(gt_poses[n].R @ (est[n][0] @ R_t.T).T)
-
-    src = {n: est[n][1] for n in names}
-    tgt = {n: gt_poses[n].center for n in names}
-    aerial = [n for n in names if image_set(n) == "aerial"]
-    aerial_al = _alignment(np.array([src[n] for n in aerial]), np.array([tgt[n] for n in aerial]), conf)
-    if aerial_al is not None:
-        for n in names:
-            rows[n]["aerial_aligned_error"] = float(np.linalg.norm(_apply(aerial_al[0], src[n])[0] - tgt[n]))
-    all_al = _alignment(np.array([src[n] for n in names]), np.array([tgt[n] for n in names]), conf)
-    if all_al is not None:
-        M = all_al[0]
-        R_s = M[:, :3] / all_al[1]["scale"]
-        for n in names:
-            rows[n]["position_error"] = float(np.linalg.norm(_apply(M, src[n])[0] - tgt[n]))
-            rows[n]["rotation_error"] = rotation_angle_deg(gt_poses[n].R @ (est[n][0] @ R_s.T).T)
+    _absolute_errors(rows, est, gt_poses, frame, truth)
+    aerial_al, all_al = _aligned_errors(rows, est, gt_poses, conf)
     per_image = list(rows.values())
-
-    sets = list(dict.fromkeys([*conf["sets"], *sorted({image_set(n) for n in gt_poses})]))
-    per_set = {}
-    for s in [*sets, "all"]:
-        in_set = lambda n, s=s: s == "all" or image_set(n) == s  # noqa: E731
-        rs = [r for r in per_image if in_set(r["name"])]
-        per_set[s] = {
-            "num_gt": sum(in_set(n) for n in gt_poses),
-            "num_registered": sum(in_set(n) for n in names),
-            **{k: _stats([r[k] for r in rs if k in r]) for k in ERROR_KEYS},
-        }
+    per_set = _per_set(per_image, names, gt_poses, conf)
     summary = {
         "scene": str(scene_dir),
         "model": str(model_path),
@@ -223,14 +194,68 @@ def evaluate_sfm(
         "ok" if all_al else "none",
     )
     if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
-        with open(out_dir / "per_image.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=("name", "set", *ERROR_KEYS))
-            w.writeheader()
-            w.writerows(per_image)
+        _write(summary, Path(out_dir))
     return summary
+
+
+def _absolute_errors(rows: dict, est: dict, gt_poses: dict, frame, truth) -> None:
+    """Each row's absolute_error (m) and absolute_rotation_error (deg): the model's georeferenced frame
+    taken to the truth's through WGS84, no alignment (nothing without a georef or a scene origin)."""
+    names = sorted(est)
+    if not names or frame is None or truth is None:
+        return
+    R_t, to_truth = to_truth_frame(frame, truth)
+    centres = to_truth(np.array([est[n][1] for n in names]))
+    for n, c in zip(names, centres, strict=True):
+        rows[n]["absolute_error"] = float(np.linalg.norm(c - gt_poses[n].center))
+        rows[n]["absolute_rotation_error"] = rotation_angle_deg(gt_poses[n].R @ (est[n][0] @ R_t.T).T)
+
+
+def _aligned_errors(rows: dict, est: dict, gt_poses: dict, conf: dict) -> tuple:
+    """Each row's aerial_aligned_error (a robust Sim3 of the aerial cameras to the truth), and its
+    position_error and rotation_error after one of all the cameras: (aerial alignment, alignment),
+    each (matrix, report) or None."""
+    names = sorted(est)
+    src = {n: est[n][1] for n in names}
+    tgt = {n: gt_poses[n].center for n in names}
+    aerial = [n for n in names if image_set(n) == "aerial"]
+    aerial_al = _alignment(np.array([src[n] for n in aerial]), np.array([tgt[n] for n in aerial]), conf)
+    if aerial_al is not None:
+        for n in names:
+            rows[n]["aerial_aligned_error"] = float(np.linalg.norm(_apply(aerial_al[0], src[n])[0] - tgt[n]))
+    all_al = _alignment(np.array([src[n] for n in names]), np.array([tgt[n] for n in names]), conf)
+    if all_al is not None:
+        M = all_al[0]
+        R_s = M[:, :3] / all_al[1]["scale"]
+        for n in names:
+            rows[n]["position_error"] = float(np.linalg.norm(_apply(M, src[n])[0] - tgt[n]))
+            rows[n]["rotation_error"] = rotation_angle_deg(gt_poses[n].R @ (est[n][0] @ R_s.T).T)
+    return aerial_al, all_al
+
+
+def _per_set(per_image: list[dict], names: list[str], gt_poses: dict, conf: dict) -> dict:
+    """Per set (and "all"): images in the truth, registered, and the statistics of each error."""
+    sets = list(dict.fromkeys([*conf["sets"], *sorted({image_set(n) for n in gt_poses})]))
+    per_set = {}
+    for s in [*sets, "all"]:
+        in_set = lambda n, s=s: s == "all" or image_set(n) == s  # noqa: E731
+        rs = [r for r in per_image if in_set(r["name"])]
+        per_set[s] = {
+            "num_gt": sum(in_set(n) for n in gt_poses),
+            "num_registered": sum(in_set(n) for n in names),
+            **{k: _stats([r[k] for r in rs if k in r]) for k in ERROR_KEYS},
+        }
+    return per_set
+
+
+def _write(summary: dict, out_dir: Path) -> None:
+    """summary.json and per_image.csv."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    with open(out_dir / "per_image.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=("name", "set", *ERROR_KEYS))
+        w.writeheader()
+        w.writerows(summary["per_image"])
 
 
 def print_sfm_table(

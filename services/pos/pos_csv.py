@@ -5,7 +5,8 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -43,19 +44,29 @@ def read_pos_csv(path: str | Path) -> list[PosRecord]:
     return parse_pos_csv(text, source=str(path))
 
 
-def parse_pos_csv(text: str, source: str = "<pos>") -> list[PosRecord]:
-    lines = text.splitlines()
+@dataclass
+class _Layout:
+    """What the comment lines and the header say: the CRS, the columns and where they are."""
+
+    crs: str
+    pos_cols: tuple[str, ...]
+    att_cols: tuple[str, ...]
+    col: dict[str, int]
+    n_cols: int  # header fields
+    first_line: int  # line number of the first data row
+
+
+def _layout(lines: list[str], source: str) -> tuple[_Layout, Iterator[list[str]]]:
+    """The file's layout and a reader of its data rows; PosError for a bad CRS, header or attitude."""
     n_comment = 0
     while n_comment < len(lines) and (lines[n_comment].startswith("#") or not lines[n_comment].strip()):
         n_comment += 1
     meta = _directives([ln for ln in lines[:n_comment] if ln.startswith("#")])
-    errors: list[str] = []
     crs = meta.get("crs", WGS84_3D)
     try:
         geographic = parse_crs(crs).is_geographic
     except CRSError as e:
         raise PosError([f"{source}: {e}"]) from None
-
     reader = csv.reader(io.StringIO("\n".join(lines[n_comment:])))
     header = [h.strip().lower() for h in next(reader, [])]
     if not header:
@@ -76,17 +87,45 @@ def parse_pos_csv(text: str, source: str = "<pos>") -> list[PosRecord]:
     if att_cols and not all(c in header for c in att_cols):
         raise PosError([f"{source}: attitude {att} needs columns {', '.join(att_cols)}"])
     col = {c: i for i, c in enumerate(header)}
+    return _Layout(crs, pos_cols, att_cols, col, len(header), n_comment + 2), reader
 
-    rows: list[tuple[int, str, list[float], list[float] | None, list[float | None]]] = []
+
+def _number(raw: str, c: str, where: str, errors: list[str], optional: bool = False) -> float | None:
+    """The value of column c (None, with the reason appended to errors, when it is not a finite number
+    in the column's range; None for an empty optional cell)."""
+    raw = raw.strip()
+    if optional and raw == "":
+        return None
+    try:
+        v = float(raw)
+    except ValueError:
+        errors.append(f"{where}, column {c}: {raw!r} is not a number")
+        return None
+    if not math.isfinite(v):
+        errors.append(f"{where}, column {c}: {raw!r} is not finite")
+        return None
+    lo, hi = RANGES.get(c, ANGLE_RANGE if c in YPR_COLS + OPK_COLS else (-math.inf, math.inf))
+    if c in STD_COLS:
+        lo = 0.0
+    if not lo <= v <= hi:
+        errors.append(f"{where}, column {c}: {v} is outside [{lo}, {hi}]")
+        return None
+    return v
+
+
+def _rows(lay: _Layout, reader: Iterator[list[str]], source: str, errors: list[str]) -> list[tuple]:
+    """[(line, name, position, attitude or None, stds)] of the valid rows; the others' reasons in errors."""
+    rows = []
     seen: dict[str, int] = {}
-    for lineno, row in enumerate(reader, start=n_comment + 2):
+    n_cols = lay.n_cols
+    for lineno, row in enumerate(reader, start=lay.first_line):
         if not row or all(not c.strip() for c in row) or row[0].startswith("#"):
             continue
         where = f"{source} line {lineno}"
-        if len(row) != len(header):
-            errors.append(f"{where}: {len(row)} fields, the header has {len(header)}")
+        if len(row) != n_cols:
+            errors.append(f"{where}: {len(row)} fields, the header has {n_cols}")
             continue
-        name = row[col["name"]].strip()
+        name = row[lay.col["name"]].strip()
         if not name:
             errors.append(f"{where}: empty image name")
             continue
@@ -94,47 +133,33 @@ def parse_pos_csv(text: str, source: str = "<pos>") -> list[PosRecord]:
             errors.append(f"{where}: duplicate name {name!r} (first on line {seen[name]})")
             continue
         seen[name] = lineno
-
-        def num(c: str, optional: bool = False, where=where, row=row) -> float | None:
-            raw = row[col[c]].strip()
-            if optional and raw == "":
-                return None
-            try:
-                v = float(raw)
-            except ValueError:
-                errors.append(f"{where}, column {c}: {raw!r} is not a number")
-                return None
-            if not math.isfinite(v):
-                errors.append(f"{where}, column {c}: {raw!r} is not finite")
-                return None
-            lo, hi = RANGES.get(c, ANGLE_RANGE if c in YPR_COLS + OPK_COLS else (-math.inf, math.inf))
-            if c in STD_COLS:
-                lo = 0.0
-            if not lo <= v <= hi:
-                errors.append(f"{where}, column {c}: {v} is outside [{lo}, {hi}]")
-                return None
-            return v
-
         n_err = len(errors)
-        p = [num(c) for c in pos_cols]
+        p = [_number(row[lay.col[c]], c, where, errors) for c in lay.pos_cols]
         a = None
-        if att_cols and any(row[col[c]].strip() for c in att_cols):  # attitude may be absent per row
-            a = [num(c) for c in att_cols]
-        s = [num(c, optional=True) if c in col else None for c in STD_COLS]
+        if lay.att_cols and any(row[lay.col[c]].strip() for c in lay.att_cols):  # attitude may be absent
+            a = [_number(row[lay.col[c]], c, where, errors) for c in lay.att_cols]
+        s = [_number(row[lay.col[c]], c, where, errors, True) if c in lay.col else None for c in STD_COLS]
         if len(errors) == n_err:
-            rows.append((lineno, name, p, a, s))  # type: ignore[arg-type]
+            rows.append((lineno, name, p, a, s))
+    return rows
+
+
+def parse_pos_csv(text: str, source: str = "<pos>") -> list[PosRecord]:
+    """The records of a POS CSV's text. Raises PosError listing every bad row (line, column, reason)."""
+    lay, reader = _layout(text.splitlines(), source)
+    errors: list[str] = []
+    rows = _rows(lay, reader, source, errors)
     if errors:
         raise PosError(errors)
     if not rows:
         raise PosError([f"{source}: no POS rows"])
-
     arr = np.array([r[2] for r in rows], float)
-    lat, lon, h = to_wgs84(crs, arr[:, 0], arr[:, 1], arr[:, 2])
+    lat, lon, h = to_wgs84(lay.crs, arr[:, 0], arr[:, 1], arr[:, 2])
     records = []
     for i, (_, name, _, a, s) in enumerate(rows):
         R = None
         if a is not None:
-            R = opk_to_matrix(*a) if att_cols == OPK_COLS else ypr_to_matrix(*a)
+            R = opk_to_matrix(*a) if lay.att_cols == OPK_COLS else ypr_to_matrix(*a)
         records.append(
             PosRecord(
                 name=name,
@@ -145,7 +170,7 @@ def parse_pos_csv(text: str, source: str = "<pos>") -> list[PosRecord]:
                 std_xy=s[0],
                 std_z=s[1],
                 std_att=s[2],
-                crs=crs,
+                crs=lay.crs,
             )
         )
     return records

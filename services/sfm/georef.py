@@ -315,6 +315,24 @@ def _uncertainty(sol) -> dict:
     }
 
 
+def _noise_used(
+    terms: JointTerms, x: np.ndarray, s: float, pairs: list[int], prior: str, source: str, height_trend: bool
+) -> dict:
+    """The noise a joint fit used and what it found of the POS's biases (refine_joint's `noise`)."""
+    return {
+        "horizontal_m": float(np.median(terms.sig_pos[:, 0])),
+        "vertical_m": float(np.median(terms.sig_pos[:, 2])),
+        "position_source": source,
+        "attitude_deg": float(np.median(terms.sig_att[pairs])) if pairs else None,
+        "attitudes_used": len(pairs),
+        "orientation_prior": prior,
+        "prior_deg": [float(v) for v in terms.sig_prior] if terms.axes else None,
+        "level_std_m": s * terms.sig_level if terms.sig_level else None,
+        "height_trend_deg": ([float(np.degrees(np.arctan(v))) for v in x[7:9]] if height_trend else None),
+        "attitude_yaw_bias_deg": float(np.degrees(x[-1])) if terms.yaw_bias else None,
+    }
+
+
 def refine_joint(
     src: np.ndarray,
     tgt: np.ndarray,
@@ -384,18 +402,8 @@ def refine_joint(
     R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0
     s = float(s0 * np.exp(sol.x[3]))
     t = sol.x[4:7] - s * R @ src.mean(0)
-    noise = {
-        "horizontal_m": float(np.median(terms.sig_pos[:, 0])),
-        "vertical_m": float(np.median(terms.sig_pos[:, 2])),
-        "position_source": "stated" if pos_stated.all() else ("estimated" if est_pos else "default"),
-        "attitude_deg": float(np.median(terms.sig_att[pairs])) if pairs else None,
-        "attitudes_used": len(pairs),
-        "orientation_prior": prior,
-        "prior_deg": [float(v) for v in terms.sig_prior] if terms.axes else None,
-        "level_std_m": s * terms.sig_level if terms.sig_level else None,
-        "height_trend_deg": ([float(np.degrees(np.arctan(v))) for v in sol.x[7:9]] if height_trend else None),
-        "attitude_yaw_bias_deg": float(np.degrees(sol.x[-1])) if terms.yaw_bias else None,
-    }
+    source = "stated" if pos_stated.all() else ("estimated" if est_pos else "default")
+    noise = _noise_used(terms, sol.x, s, pairs, prior, source, height_trend)
     return s, R, t, noise, _uncertainty(sol)
 
 
@@ -452,6 +460,79 @@ def joint_fit(
     return chosen
 
 
+def _initial_similarity(
+    src: np.ndarray, tgt: np.ndarray, pairs: list, cond: dict, max_error: float, conf: dict
+) -> tuple[float, np.ndarray, np.ndarray, str, bool]:
+    """(scale, R, t, method, from the centres): LO-RANSAC (else least squares) on the centres, or, where
+    they are too close to a line and attitudes exist, the rotation from the POS attitudes."""
+    sim, res = None, None
+    if not (cond["ill_conditioned"] and pairs):
+        opts = pycolmap.RANSACOptions(max_error=max_error)
+        opts.random_seed = conf["seed"]
+        res = pycolmap.estimate_sim3d_robust(src, tgt, opts)
+        sim = res["tgt_from_src"] if res is not None else pycolmap.estimate_sim3d(src, tgt)
+    if sim is not None:
+        s, R, t = float(sim.scale), np.asarray(sim.rotation.matrix()), np.asarray(sim.translation).ravel()
+        method = "LO-RANSAC on centres" if res is not None else "least squares on centres"
+        return s, R, t, method, True
+    if pairs:
+        R, n_att = robust_mean_rotation([Rp @ Rr.T for Rr, Rp in pairs], conf["attitude_inlier_deg"])
+        s, t = _similarity_from_attitudes(src, tgt, R)
+        return (
+            s,
+            R,
+            t,
+            f"rotation from {n_att}/{len(pairs)} POS attitudes (centres too close to a line)",
+            False,
+        )
+    raise GeorefError("the similarity estimation failed (degenerate camera centres, no POS attitude)")
+
+
+def _joint_terms(noise: dict) -> list[str]:
+    """What the joint refinement fitted, for the method's description."""
+    terms = ["centres"]
+    if noise["attitudes_used"]:
+        terms.append(f"{noise['attitudes_used']} attitudes")
+    if noise["orientation_prior"] != "none":
+        terms.append(f"{noise['orientation_prior']} prior")
+    if (noise.get("attitude_yaw") or {}).get("biased"):
+        bias = noise["attitude_yaw"]["bias_deg"]
+        terms.append(f"attitude headings {bias:+.1f} degrees off: heading from the centres")
+    if noise.get("height_trend", {}).get("heights_tilted"):
+        terms.append(
+            f"POS heights tilted {noise['height_trend']['tilt_difference_deg']:.1f} degrees against "
+            "them: tilt from them alone"
+        )
+    return terms
+
+
+def _residuals(
+    geo: Georef,
+    names: list[str],
+    src: np.ndarray,
+    tgt: np.ndarray,
+    R_rec: list[np.ndarray] | None,
+    R_pos: list[np.ndarray | None] | None,
+    max_error: float,
+) -> None:
+    """The georef's residual and inlier flag per image (within max_error, or horizontally within it and
+    vertically within its share of the vertical noise), attitude differences and tilt figures."""
+    noise = geo.noise
+    res_vec = geo.apply(src) - tgt
+    v_error = max_error * noise.get("vertical_m", 1.0) / max(noise.get("horizontal_m", 1.0), 1e-9)
+    for i, n in enumerate(names):
+        geo.residuals[n] = res_vec[i]
+        geo.inliers[n] = bool(
+            np.linalg.norm(res_vec[i]) <= max_error
+            or (np.linalg.norm(res_vec[i][:2]) <= max_error and abs(res_vec[i][2]) <= v_error)
+        )
+    if R_pos is not None:
+        for n, Rr, Rp in zip(names, R_rec or [], R_pos or [], strict=True):
+            if Rp is not None:
+                geo.attitude_deg[n] = rotation_angle_deg(Rp.T @ (geo.R @ Rr))
+    geo.levels = tilt_figures(geo.apply(src), [geo.R @ Rr for Rr in R_rec] if R_rec is not None else None)
+
+
 def estimate(
     names: list[str],
     src: np.ndarray,
@@ -484,46 +565,19 @@ def estimate(
         if R_rec is None or R_pos is None
         else [(a, b) for a, b in zip(R_rec, R_pos, strict=True) if b is not None]
     )
-    sim, res = None, None
-    if not (cond["ill_conditioned"] and pairs):
-        opts = pycolmap.RANSACOptions(max_error=max_error)
-        opts.random_seed = conf["seed"]
-        res = pycolmap.estimate_sim3d_robust(src, tgt, opts)
-        sim = res["tgt_from_src"] if res is not None else pycolmap.estimate_sim3d(src, tgt)
-    if sim is not None:
-        s, R, t = float(sim.scale), np.asarray(sim.rotation.matrix()), np.asarray(sim.translation).ravel()
-        method = "LO-RANSAC on centres" if res is not None else "least squares on centres"
-    elif pairs:
-        R, n_att = robust_mean_rotation([Rp @ Rr.T for Rr, Rp in pairs], conf["attitude_inlier_deg"])
-        s, t = _similarity_from_attitudes(src, tgt, R)
-        method = f"rotation from {n_att}/{len(pairs)} POS attitudes (centres too close to a line)"
-    else:
-        raise GeorefError("the similarity estimation failed (degenerate camera centres, no POS attitude)")
+    s, R, t, method, centred = _initial_similarity(src, tgt, pairs, cond, max_error, conf)
     noise, unc = {}, {}
     if conf["joint"]:
         std = np.full((len(src), 3), float(sigma)) if pos_std is None else np.asarray(pos_std, float)
         s, R, t, noise, unc = joint_fit(
             src, tgt, (s, R, t), std, R_rec, R_pos, att_std_deg, conf, float(sigma)
         )
-        terms = ["centres"]
-        if noise["attitudes_used"]:
-            terms.append(f"{noise['attitudes_used']} attitudes")
-        if noise["orientation_prior"] != "none":
-            terms.append(f"{noise['orientation_prior']} prior")
-        if (noise.get("attitude_yaw") or {}).get("biased"):
-            bias = noise["attitude_yaw"]["bias_deg"]
-            terms.append(f"attitude headings {bias:+.1f} degrees off: heading from the centres")
-        if noise.get("height_trend", {}).get("heights_tilted"):
-            terms.append(
-                f"POS heights tilted {noise['height_trend']['tilt_difference_deg']:.1f} degrees against "
-                "them: tilt from them alone"
-            )
-        method += ", joint refinement (" + ", ".join(terms) + ")"
+        method += ", joint refinement (" + ", ".join(_joint_terms(noise)) + ")"
         if noise["position_source"] != "stated":
             max_error = max(conf["max_error_sigmas"] * noise["horizontal_m"], conf["min_max_error"])
             cond["max_error_m"] = max_error
     fixed = noise.get("attitudes_used") or noise.get("orientation_prior", "none") != "none"
-    if cond["ill_conditioned"] and sim is not None and not fixed:
+    if cond["ill_conditioned"] and centred and not fixed:
         method += " (ill-conditioned: centres close to a line, no POS attitude)"
         logger.warning(
             "camera centres are nearly collinear and the POS has no attitude: the rotation about "
@@ -531,19 +585,7 @@ def estimate(
             cond["rotation_uncertainty_deg"],
         )
     geo = Georef(s, R, t, method, cond, noise=noise, uncertainty=unc)
-    res_vec = geo.apply(src) - tgt
-    v_error = max_error * noise.get("vertical_m", 1.0) / max(noise.get("horizontal_m", 1.0), 1e-9)
-    for i, n in enumerate(names):
-        geo.residuals[n] = res_vec[i]
-        geo.inliers[n] = bool(
-            np.linalg.norm(res_vec[i]) <= max_error
-            or (np.linalg.norm(res_vec[i][:2]) <= max_error and abs(res_vec[i][2]) <= v_error)
-        )
-    if pairs:
-        for n, Rr, Rp in zip(names, R_rec or [], R_pos or [], strict=True):
-            if Rp is not None:
-                geo.attitude_deg[n] = rotation_angle_deg(Rp.T @ (R @ Rr))
-    geo.levels = tilt_figures(geo.apply(src), [R @ Rr for Rr in R_rec] if R_rec is not None else None)
+    _residuals(geo, names, src, tgt, R_rec, R_pos if pairs else None, max_error)
     if cond["coplanar"]:
         logger.info(
             "camera centres are nearly coplanar (one flight height): the similarity is still determined"

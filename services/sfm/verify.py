@@ -119,6 +119,25 @@ def _rays(cam: pycolmap.Camera, kp: np.ndarray) -> np.ndarray:
     return _unit(np.c_[xy, np.ones(len(xy))])
 
 
+def _check_long_pair(
+    x1: np.ndarray, x2: np.ndarray, R: np.ndarray, t_pos: np.ndarray, sigma: float, conf: dict
+) -> tuple[str | None, float | None]:
+    """(why the pair contradicts the POS or None, the scene depth its consistent inliers give) of a pair
+    whose POS baseline is long enough to check: the inliers' rays x1, x2 must fit the POS rotation R
+    and baseline t_pos (position noise sigma)."""
+    b = float(np.linalg.norm(t_pos))
+    _, mask = fit_translation(x1, x2, R, conf["epipolar_deg"], conf["seed"])
+    frac = float(mask.mean())
+    err = float(np.median(epipolar_errors_deg(x1, x2, R, t_pos)))
+    bound = conf["epipolar_deg"] + float(np.degrees(np.arctan(sigma / b)))
+    if frac < conf["min_consistent"] or err > bound:
+        return (
+            f"{100 * frac:.0f}% of the inliers fit the POS rotation; median epipolar error "
+            f"{err:.1f} degrees with the POS baseline (max {bound:.1f})"
+        ), None
+    return None, triangulated_depth(x1[mask], x2[mask], R, t_pos)
+
+
 def check_pairs(
     db_path: str | Path, records: dict[str, PosRecord], frame: LocalFrame, conf: dict | None = None
 ) -> dict:
@@ -158,22 +177,12 @@ def check_pairs(
             if np.linalg.norm(t_pos) <= conf["baseline_sigmas"] * sigma:
                 short.append((i1, i2, pair, len(m), x1, x2, R, float(np.linalg.norm(t_pos)), sigma))
                 continue
-            b = float(np.linalg.norm(t_pos))
-            _, mask = fit_translation(x1, x2, R, conf["epipolar_deg"], conf["seed"])
-            frac = float(mask.mean())
-            err = float(np.median(epipolar_errors_deg(x1, x2, R, t_pos)))
-            bound = conf["epipolar_deg"] + float(np.degrees(np.arctan(sigma / b)))
-            if frac < conf["min_consistent"] or err > bound:
-                reason = (
-                    f"{100 * frac:.0f}% of the inliers fit the POS rotation; median epipolar error "
-                    f"{err:.1f} degrees with the POS baseline (max {bound:.1f})"
-                )
+            reason, d = _check_long_pair(x1, x2, R, t_pos, sigma, conf)
+            if reason is not None:
                 db.delete_two_view_geometry(i1, i2)
                 out["rejected"].append({"pair": pair, "inliers": len(m), "reason": reason})
-            else:
-                d = triangulated_depth(x1[mask], x2[mask], R, t_pos)
-                if d is not None:
-                    depths.append(d)
+            elif d is not None:
+                depths.append(d)
         depth = float(np.median(depths)) if depths else None
         out["depth_m"] = depth
         for i1, i2, pair, n, x1, x2, R, b, sigma in short if depth is not None else []:

@@ -367,6 +367,22 @@ def block_digest(plan: dict, block: Block, model_path: Path) -> str:
     return h.hexdigest()
 
 
+def _finished(folder: Path, digest: str) -> dict | None:
+    """block.json's figures when the block was finished from the same inputs (digest); else None,
+    block.json removed and the checkpoints too when they were made from other inputs."""
+    done = folder / "block.json"
+    if done.is_file():
+        doc = json.loads(done.read_text())
+        if doc.get("digest") == digest and (not doc["trained"] or (folder / "point_cloud.ply").is_file()):
+            return doc
+    done.unlink(missing_ok=True)
+    stamp = folder / "inputs.sha256"
+    if not stamp.is_file() or stamp.read_text().strip() != digest:
+        shutil.rmtree(folder / "ckpts", ignore_errors=True)
+        stamp.write_text(digest + "\n")
+    return None
+
+
 def train_block(
     plan_path: str | Path,
     block_id: str,
@@ -392,27 +408,15 @@ def train_block(
         (folder / "block.json").write_text(json.dumps(doc, indent=1))
         return doc
     digest = block_digest(plan, block, Path(model_path))
-    done = folder / "block.json"
-    if done.is_file():
-        doc = json.loads(done.read_text())
-        if doc.get("digest") == digest and (not doc["trained"] or (folder / "point_cloud.ply").is_file()):
-            return doc
-    done.unlink(missing_ok=True)
-    stamp = folder / "inputs.sha256"
-    if not stamp.is_file() or stamp.read_text().strip() != digest:
-        shutil.rmtree(folder / "ckpts", ignore_errors=True)
-        stamp.write_text(digest + "\n")
+    finished = _finished(folder, digest)
+    if finished is not None:
+        return finished
     t0 = time.perf_counter()
     model = load_model(model_path)
     own, rest = split_model(model, block, block.margin)
     if not len(own["means"]):  # nothing to refine (densification grows only from existing Gaussians)
-        doc = {
-            "id": block_id,
-            "trained": False,
-            "reason": "the whole-scene 3DGS has no Gaussian in this block",
-            "views": block.views,
-            "digest": digest,
-        }
+        reason = "the whole-scene 3DGS has no Gaussian in this block"
+        doc = {"id": block_id, "trained": False, "reason": reason, "views": block.views, "digest": digest}
         (folder / "block.json").write_text(json.dumps(doc, indent=1))
         return doc
     rec = pycolmap.Reconstruction(str(sparse))
@@ -446,9 +450,9 @@ def train_block(
         "seconds": time.perf_counter() - t0,
         "digest": digest,
     }
-    tmp = done.with_suffix(".tmp")
+    tmp = folder / "block.tmp"
     tmp.write_text(json.dumps(doc, indent=1))
-    tmp.replace(done)
+    tmp.replace(folder / "block.json")
     log.info(
         "block %s: %d crops, %d -> %d Gaussians, crop PSNR %.2f -> %.2f dB, %.0f s",
         block_id, doc["crops"], doc["gaussians_before"], doc["gaussians"], before, doc["psnr_after"],

@@ -490,25 +490,7 @@ class Trainer:
                 if self.device.type == "cpu":  # the target's half of SSIM, once per image (GPUs recompute)
                     with torch.no_grad():
                         stats[v.name] = ssim_stats(imgs[v.name])
-            self.optimizers["means"].param_groups[0]["lr"] = self.means_lr(step)
-            use_depth = c["depth_lambda"] > 0 and v.depth_targets is not None and len(v.depth_targets) > 0
-            colors, _, info = self.render_view(v, self.sh_degree_at(step), depth=use_depth)
-            self.strategy.step_pre_backward(self.splats, self.optimizers, self.strategy_state, step, info)
-            if use_depth:
-                colors, depth = colors[..., :3], colors[..., 3]
-            loss, terms = photometric_loss(colors, imgs[v.name], c["ssim_lambda"], stats.get(v.name))
-            if use_depth:
-                dl = sparse_depth_loss(
-                    depth, v.depth_pixels.to(self.device), v.depth_targets.to(self.device), self.extent
-                )
-                loss = loss + c["depth_lambda"] * dl
-            loss.backward()
-            for o in self.optimizers.values():
-                o.step()
-                o.zero_grad(set_to_none=True)
-            changed = self.strategy.step_post_backward(
-                self.splats, self.optimizers, self.strategy_state, step, self._own(info)
-            )
+            loss, colors, changed = self._train_step(v, step, imgs[v.name], stats.get(v.name))
             self.step = step + 1
             rec = {
                 "step": self.step,
@@ -516,24 +498,7 @@ class Trainer:
                 "psnr": psnr(colors.detach(), imgs[v.name]),
             }
             self.history.append(rec)
-            if changed and self.strategy.verbose:
-                log.info("step %d: %s, %d Gaussians", self.step, changed, len(self.splats["means"]))
-            if bar is None and c["log_every"] and self.step % c["log_every"] == 0:
-                last = self.history[-c["log_every"] :]
-                log.info(
-                    "step %d: loss %.4f, PSNR %.2f dB (mean of the last %d), %d Gaussians, %.0f s",
-                    self.step,
-                    np.mean([r["loss"] for r in last]),
-                    np.mean([r["psnr"] for r in last]),
-                    len(last),
-                    len(self.splats["means"]),
-                    time.perf_counter() - t0,
-                )
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(
-                    loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}", n=len(self.splats["means"])
-                )
+            self._report_step(rec, changed, bar, t0)
             self.elapsed_s = elapsed0 + time.perf_counter() - t0
             if c["time_budget_s"] and self.step % c["budget_every"] == 0:
                 pace = self._fit_time_budget(pace) if pace else (time.perf_counter(), self.step)
@@ -546,6 +511,53 @@ class Trainer:
         if bar is not None:
             bar.close()
         self.train_seconds = time.perf_counter() - t0
+
+    def _train_step(
+        self, v: View, step: int, target: torch.Tensor, target_stats: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor, Any]:
+        """One optimisation step on view v: render, photometric (and sparse depth) loss, backward, the
+        optimisers' and the strategy's steps. (loss, rendered colours, what the strategy changed)."""
+        c = self.conf
+        self.optimizers["means"].param_groups[0]["lr"] = self.means_lr(step)
+        use_depth = c["depth_lambda"] > 0 and v.depth_targets is not None and len(v.depth_targets) > 0
+        colors, _, info = self.render_view(v, self.sh_degree_at(step), depth=use_depth)
+        self.strategy.step_pre_backward(self.splats, self.optimizers, self.strategy_state, step, info)
+        if use_depth:
+            colors, depth = colors[..., :3], colors[..., 3]
+        loss, terms = photometric_loss(colors, target, c["ssim_lambda"], target_stats)
+        if use_depth:
+            dl = sparse_depth_loss(
+                depth, v.depth_pixels.to(self.device), v.depth_targets.to(self.device), self.extent
+            )
+            loss = loss + c["depth_lambda"] * dl
+        loss.backward()
+        for o in self.optimizers.values():
+            o.step()
+            o.zero_grad(set_to_none=True)
+        changed = self.strategy.step_post_backward(
+            self.splats, self.optimizers, self.strategy_state, step, self._own(info)
+        )
+        return loss, colors, changed
+
+    def _report_step(self, rec: dict, changed: Any, bar: Any, t0: float) -> None:
+        """The strategy's changes, every log_every steps the mean loss and PSNR, or the progress bar."""
+        c = self.conf
+        if changed and self.strategy.verbose:
+            log.info("step %d: %s, %d Gaussians", self.step, changed, len(self.splats["means"]))
+        if bar is None and c["log_every"] and self.step % c["log_every"] == 0:
+            last = self.history[-c["log_every"] :]
+            log.info(
+                "step %d: loss %.4f, PSNR %.2f dB (mean of the last %d), %d Gaussians, %.0f s",
+                self.step,
+                np.mean([r["loss"] for r in last]),
+                np.mean([r["psnr"] for r in last]),
+                len(last),
+                len(self.splats["means"]),
+                time.perf_counter() - t0,
+            )
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}", n=len(self.splats["means"]))
 
     def _own(self, info: dict) -> dict:
         """`info` of a render trimmed to the trained Gaussians (the frozen ones come after them)."""

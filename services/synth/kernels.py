@@ -432,21 +432,9 @@ def shopfront(ub, v, bay, hg, fp, fs, bi):
 
 
 @njit(cache=True)
-def facade(u, z, L, ztop, fp, par, fs, atlas, aoff, adim, lut):
-    """Albedo of a building facade at (u, z): u metres along the face from its left end (seen from
-    outside), z height; L face length, ztop the top of the box."""
-    r = par[P_R]
-    g = par[P_G]
-    b = par[P_B]
-    # weathering: low-frequency stains and tint
-    st = fbm2(u, z, fs * 3 + 1, 9.0, fp, 0.5, 0.6)
-    r *= math.exp(0.35 * st)
-    g *= math.exp(0.33 * st)
-    b *= math.exp(0.3 * st + 0.1 * fbm2(u, z, fs * 3 + 2, 6.0, fp, 1.0, 0.5))
-    if par[P_PHOTO] > 0.0:
-        r, g, b = facade_photo(u, z, fp, par[P_PHOTO], fs, atlas, aoff, adim, lut)
-        k = math.exp(0.12 * fbm2(u, z, fs * 5 + 7, 0.25, fp, 0.002, 0.85))
-        return r * k, g * k, b * k
+def facade_wall(u, z, r, g, b, fp, par, fs):
+    """The wall material of a facade at (u, z) over its base colour (r, g, b): brick in running bond
+    (style 1), concrete panels (style 2), else plain render."""
     style = np.int64(par[P_STYLE])
     if style == 1:  # brick, running bond
         course = 0.075
@@ -476,51 +464,81 @@ def facade(u, z, L, ztop, fp, par, fs, atlas, aoff, adim, lut):
         r *= k
         g *= k
         b *= k
+    return r, g, b
+
+
+@njit(cache=True)
+def ground_floor_opening(ub, v, bi, n, bay, hg, fp, par, fs):
+    """(hit, r, g, b) of the ground floor's opening of bay bi at (ub, v): a shopfront, the door or a
+    window."""
+    if hashf(bi, 0, fs, 9) < par[P_SHOP]:
+        return shopfront(ub, v, bay, hg, fp, fs, bi)
+    if bi == np.int64(par[P_DOOR] * n):
+        if abs(ub) < 0.65 and v < 2.4:
+            if abs(ub) > 0.57 or v > 2.32:
+                return True, par[P_FR], par[P_FG], par[P_FB]
+            pan = 1.0 - 0.4 * max(lines(ub, 0.4, 0.03, fp), lines(v, 0.55, 0.03, fp))
+            dr = 0.12 + 0.2 * hashf(fs, 0, 0, 7)
+            return True, dr * pan, 0.6 * dr * pan, 0.35 * dr * pan
+        return False, 0.0, 0.0, 0.0
+    wh = min(hg - 1.9, 1.7)
+    return window(
+        ub, v - 1.1, 0.5 * bay * par[P_WINW], wh, fp, fs, bi, np.int64(-1), par[P_FR], par[P_FG], par[P_FB]
+    )
+
+
+@njit(cache=True)
+def facade_openings(u, z, L, ztop, r, g, b, fp, par, fs):
+    """Windows, doors and shopfronts in the facade's bays over the wall colour (r, g, b)."""
     hg = par[P_GFLOOR]
     hf = par[P_FLOOR]
     bay = par[P_BAY]
     v = z - par[P_Z0]
     htop = ztop - par[P_Z0]
-    fr = par[P_FR]
-    fg = par[P_FG]
-    fb = par[P_FB]
     n = max(1, np.int64(L / bay))
     m = 0.5 * (L - n * bay)
     bi = np.int64(math.floor((u - m) / bay))
     ub = u - m - (bi + 0.5) * bay
-    wr = 0.0
-    wg = 0.0
-    wb = 0.0
-    if 0 <= bi < n:
-        if hg > 0.0 and v < hg:
-            hit = False
-            if hashf(bi, 0, fs, 9) < par[P_SHOP]:
-                hit, wr, wg, wb = shopfront(ub, v, bay, hg, fp, fs, bi)
-            elif bi == np.int64(par[P_DOOR] * n):
-                if abs(ub) < 0.65 and v < 2.4:
-                    hit = True
-                    if abs(ub) > 0.57 or v > 2.32:
-                        wr, wg, wb = fr, fg, fb
-                    else:
-                        pan = 1.0 - 0.4 * max(lines(ub, 0.4, 0.03, fp), lines(v, 0.55, 0.03, fp))
-                        dr = 0.12 + 0.2 * hashf(fs, 0, 0, 7)
-                        wr, wg, wb = dr * pan, 0.6 * dr * pan, 0.35 * dr * pan
-            else:
-                wh = min(hg - 1.9, 1.7)
-                hit, wr, wg, wb = window(
-                    ub, v - 1.1, 0.5 * bay * par[P_WINW], wh, fp, fs, bi, np.int64(-1), fr, fg, fb
-                )
-            if hit:
-                r, g, b = wr, wg, wb
-        else:
-            fl = np.int64(math.floor((v - hg) / hf))
-            if hg + (fl + 1) * hf <= htop - par[P_PARAPET] + 1e-6:
-                vf = v - hg - fl * hf
-                hit, wr, wg, wb = window(
-                    ub, vf - 0.85, 0.5 * bay * par[P_WINW], hf * par[P_WINH], fp, fs, bi, fl, fr, fg, fb
-                )
-                if hit:
-                    r, g, b = wr, wg, wb
+    if not 0 <= bi < n:
+        return r, g, b
+    if hg > 0.0 and v < hg:
+        hit, wr, wg, wb = ground_floor_opening(ub, v, bi, n, bay, hg, fp, par, fs)
+        if hit:
+            return wr, wg, wb
+        return r, g, b
+    fl = np.int64(math.floor((v - hg) / hf))
+    if hg + (fl + 1) * hf <= htop - par[P_PARAPET] + 1e-6:
+        vf = v - hg - fl * hf
+        hit, wr, wg, wb = window(
+            ub, vf - 0.85, 0.5 * bay * par[P_WINW], hf * par[P_WINH], fp, fs, bi, fl, par[P_FR], par[P_FG],
+            par[P_FB],
+        )  # fmt: skip
+        if hit:
+            return wr, wg, wb
+    return r, g, b
+
+
+@njit(cache=True)
+def facade(u, z, L, ztop, fp, par, fs, atlas, aoff, adim, lut):
+    """Albedo of a building facade at (u, z): u metres along the face from its left end (seen from
+    outside), z height; L face length, ztop the top of the box."""
+    r = par[P_R]
+    g = par[P_G]
+    b = par[P_B]
+    # weathering: low-frequency stains and tint
+    st = fbm2(u, z, fs * 3 + 1, 9.0, fp, 0.5, 0.6)
+    r *= math.exp(0.35 * st)
+    g *= math.exp(0.33 * st)
+    b *= math.exp(0.3 * st + 0.1 * fbm2(u, z, fs * 3 + 2, 6.0, fp, 1.0, 0.5))
+    if par[P_PHOTO] > 0.0:
+        r, g, b = facade_photo(u, z, fp, par[P_PHOTO], fs, atlas, aoff, adim, lut)
+        k = math.exp(0.12 * fbm2(u, z, fs * 5 + 7, 0.25, fp, 0.002, 0.85))
+        return r * k, g * k, b * k
+    r, g, b = facade_wall(u, z, r, g, b, fp, par, fs)
+    r, g, b = facade_openings(u, z, L, ztop, r, g, b, fp, par, fs)
+    hg = par[P_GFLOOR]
+    v = z - par[P_Z0]
+    htop = ztop - par[P_Z0]
     # cornice above the ground floor, plinth, coping
     if hg > 0.0:
         c = band(v, hg - 0.05, hg + 0.15, fp)
@@ -579,6 +597,83 @@ def roof(x, y, bx, fp, par, fs):
 
 
 @njit(cache=True)
+def roofbox_albedo(face, u, L, px, py, pz, bx, par, fp, fs):
+    """A box on a roof: a stair house with a door (style > 0.5) or metal cladding with a louvre."""
+    r = par[P_R]
+    g = par[P_G]
+    b = par[P_B]
+    if face >= 4:
+        k = math.exp(0.25 * fbm2(px, py, fs, 1.0, fp, 0.003, 0.85))
+        return 0.9 * r * k, 0.9 * g * k, 0.9 * b * k
+    v = pz - bx[2]
+    if par[P_STYLE] > 0.5:  # stair house with a door
+        if abs(u - 0.5 * L) < 0.5 and v < 2.1 and face == np.int64(par[P_AXIS]):
+            return 0.15, 0.2, 0.28
+    else:  # metal cladding with ribs and a louvre panel
+        k = 1.0 - 0.3 * lines(u, 0.12, 0.02, fp)
+        if abs(u - 0.5 * L) < 0.35 * L and abs(v - 0.5 * (bx[5] - bx[2])) < 0.25:
+            k *= 1.0 - 0.6 * lines(v, 0.05, 0.02, fp)
+        r, g, b = r * k, g * k, b * k
+    k = math.exp(0.18 * fbm2(u, pz, fs, 1.0, fp, 0.003, 0.85))
+    return r * k, g * k, b * k
+
+
+@njit(cache=True)
+def car_albedo(face, u, L, px, py, pz, bx, par, fp, fs):
+    """A car's body (wheels, lights, number plate) or, style > 0.5, its cabin (glass and pillars)."""
+    r = par[P_R]
+    g = par[P_G]
+    b = par[P_B]
+    v = pz - bx[2]
+    if par[P_STYLE] > 0.5:  # cabin: glass all around, pillars, roof in paint colour
+        if face >= 4:
+            return r, g, b
+        k = 0.6 * L
+        if abs(u - 0.5 * L) > k * 0.98 or v < 0.05:
+            return r * 0.8, g * 0.8, b * 0.8
+        return par[P_R2], par[P_G2], par[P_B2] + 0.03 * v
+    if face >= 4:
+        k = math.exp(0.05 * fbm2(px, py, fs, 1.0, fp, 0.005, 0.8))
+        return r * k, g * k, b * k
+    side = (face // 2) != np.int64(par[P_AXIS])
+    if side:  # wheels
+        for wx in (0.8, L - 0.8):
+            d = math.hypot(u - wx, v - 0.33)
+            if d < 0.33:
+                return (0.3, 0.3, 0.32) if d < 0.18 else (0.03, 0.03, 0.03)
+        if v < 0.25:
+            return 0.04, 0.04, 0.04
+        if abs(v - 0.75) < 0.01 + 0.5 * fp:
+            return r * 0.5, g * 0.5, b * 0.5
+    else:  # lights and number plate
+        if abs(u - 0.5 * L) < 0.26 and abs(v - 0.45) < 0.06:
+            return 0.8, 0.8, 0.75
+        if abs(abs(u - 0.5 * L) - 0.6) < 0.15 and abs(v - 0.75) < 0.07:
+            lr = 0.7 if (face & 1) == 0 else 0.8
+            return lr, 0.1 if (face & 1) == 0 else 0.75, 0.1 if (face & 1) == 0 else 0.7
+        if v < 0.3:
+            return 0.05, 0.05, 0.05
+    k = math.exp(0.04 * fbm2(u, pz, fs, 1.0, fp, 0.005, 0.8))
+    return r * k, g * k, b * k
+
+
+@njit(cache=True)
+def kiosk_albedo(face, u, L, pz, bx, par, fp, fs):
+    """A kiosk: striped walls, a light sign band at the top, a dark hatch on one side."""
+    v = pz - bx[2]
+    if face >= 4:
+        return 0.3, 0.3, 0.3
+    top = bx[5] - bx[2]
+    if v > top - 0.5:
+        return 0.8, 0.78, 0.7
+    if face & 1 == 1 and abs(u - 0.5 * L) < 0.6 and 1.0 < v < 1.9:
+        return 0.08, 0.09, 0.1
+    stripe = lines(u, 0.5, 0.25, fp)
+    k = math.exp(0.12 * fbm2(u, pz, fs, 1.0, fp, 0.003, 0.85))
+    return mix(par[P_R], 0.85, stripe) * k, mix(par[P_G], 0.85, stripe) * k, mix(par[P_B], 0.8, stripe) * k
+
+
+@njit(cache=True)
 def box_albedo(mat, face, px, py, pz, bx, par, fp, atlas, aoff, adim, lut):
     """Albedo of box primitive `bx` (lo xyz, hi xyz) of material mat at a point on face
     (0 -x, 1 +x, 2 -y, 3 +y, 4 -z, 5 +z)."""
@@ -600,68 +695,12 @@ def box_albedo(mat, face, px, py, pz, bx, par, fp, atlas, aoff, adim, lut):
         if face >= 4:
             return roof(px, py, bx, fp, par, fs)
         return facade(u, pz, L, bx[5], fp, par, fs, atlas, aoff, adim, lut)
-    r = par[P_R]
-    g = par[P_G]
-    b = par[P_B]
     if mat == MAT_ROOFBOX:
-        if face >= 4:
-            k = math.exp(0.25 * fbm2(px, py, fs, 1.0, fp, 0.003, 0.85))
-            return 0.9 * r * k, 0.9 * g * k, 0.9 * b * k
-        v = pz - bx[2]
-        if par[P_STYLE] > 0.5:  # stair house with a door
-            if abs(u - 0.5 * L) < 0.5 and v < 2.1 and face == np.int64(par[P_AXIS]):
-                return 0.15, 0.2, 0.28
-        else:  # metal cladding with ribs and a louvre panel
-            k = 1.0 - 0.3 * lines(u, 0.12, 0.02, fp)
-            if abs(u - 0.5 * L) < 0.35 * L and abs(v - 0.5 * (bx[5] - bx[2])) < 0.25:
-                k *= 1.0 - 0.6 * lines(v, 0.05, 0.02, fp)
-            r, g, b = r * k, g * k, b * k
-        k = math.exp(0.18 * fbm2(u, pz, fs, 1.0, fp, 0.003, 0.85))
-        return r * k, g * k, b * k
+        return roofbox_albedo(face, u, L, px, py, pz, bx, par, fp, fs)
     if mat == MAT_CAR:
-        v = pz - bx[2]
-        if par[P_STYLE] > 0.5:  # cabin: glass all around, pillars, roof in paint colour
-            if face >= 4:
-                return r, g, b
-            k = 0.6 * L
-            if abs(u - 0.5 * L) > k * 0.98 or v < 0.05:
-                return r * 0.8, g * 0.8, b * 0.8
-            return par[P_R2], par[P_G2], par[P_B2] + 0.03 * v
-        if face >= 4:
-            k = math.exp(0.05 * fbm2(px, py, fs, 1.0, fp, 0.005, 0.8))
-            return r * k, g * k, b * k
-        side = (face // 2) != np.int64(par[P_AXIS])
-        if side:  # wheels
-            for wx in (0.8, L - 0.8):
-                d = math.hypot(u - wx, v - 0.33)
-                if d < 0.33:
-                    return (0.3, 0.3, 0.32) if d < 0.18 else (0.03, 0.03, 0.03)
-            if v < 0.25:
-                return 0.04, 0.04, 0.04
-            if abs(v - 0.75) < 0.01 + 0.5 * fp:
-                return r * 0.5, g * 0.5, b * 0.5
-        else:  # lights and number plate
-            if abs(u - 0.5 * L) < 0.26 and abs(v - 0.45) < 0.06:
-                return 0.8, 0.8, 0.75
-            if abs(abs(u - 0.5 * L) - 0.6) < 0.15 and abs(v - 0.75) < 0.07:
-                lr = 0.7 if (face & 1) == 0 else 0.8
-                return lr, 0.1 if (face & 1) == 0 else 0.75, 0.1 if (face & 1) == 0 else 0.7
-            if v < 0.3:
-                return 0.05, 0.05, 0.05
-        k = math.exp(0.04 * fbm2(u, pz, fs, 1.0, fp, 0.005, 0.8))
-        return r * k, g * k, b * k
+        return car_albedo(face, u, L, px, py, pz, bx, par, fp, fs)
     if mat == MAT_KIOSK:
-        v = pz - bx[2]
-        if face >= 4:
-            return 0.3, 0.3, 0.3
-        top = bx[5] - bx[2]
-        if v > top - 0.5:
-            return 0.8, 0.78, 0.7
-        if face & 1 == 1 and abs(u - 0.5 * L) < 0.6 and 1.0 < v < 1.9:
-            return 0.08, 0.09, 0.1
-        stripe = lines(u, 0.5, 0.25, fp)
-        k = math.exp(0.12 * fbm2(u, pz, fs, 1.0, fp, 0.003, 0.85))
-        return mix(r, 0.85, stripe) * k, mix(g, 0.85, stripe) * k, mix(b, 0.8, stripe) * k
+        return kiosk_albedo(face, u, L, pz, bx, par, fp, fs)
     if mat == MAT_KERB:
         j = lines(px + py, 1.0, 0.01, fp)
         k = (1.0 - 0.5 * j) * math.exp(0.25 * fbm2(px + py, pz + face, fs, 0.5, fp, 0.002, 0.88))
@@ -669,21 +708,16 @@ def box_albedo(mat, face, px, py, pz, bx, par, fp, atlas, aoff, adim, lut):
     if mat == MAT_TRUNK:
         k = math.exp(0.5 * fbm2(u * 3.0, pz, fs, 0.6, fp, 0.004, 0.85))
         return 0.12 * k, 0.09 * k, 0.06 * k
+    k = 1.0
     if mat == MAT_POLE:
         k = math.exp(0.1 * fbm2(u, pz, fs, 0.5, fp, 0.003, 0.8))
-        return r * k, g * k, b * k
-    return r, g, b
+    return par[P_R] * k, par[P_G] * k, par[P_B] * k
 
 
 @njit(cache=True)
-def ground_albedo(x, y, fp, zone, zmeta, lay, seed):
-    """Albedo of the ground plane at (x, y): zone raster lookup + road markings, manholes, drains."""
-    zi = np.int64(math.floor((x - zmeta[0]) / zmeta[2]))
-    zj = np.int64(math.floor((y - zmeta[1]) / zmeta[2]))
-    zt = Z_FIELD
-    if 0 <= zi < zone.shape[1] and 0 <= zj < zone.shape[0]:
-        zt = zone[zj, zi]
-    s = seed * 16
+def paved_albedo(zt, x, y, fp, s):
+    """Grass or field (zone Z_FIELD, Z_GRASS), sidewalk tiles, cobblestones in offset rows, or what
+    lies under a building."""
     if zt == Z_FIELD or zt == Z_GRASS:
         n1 = fbm2(x, y, s + 1, 16.0, fp, 0.5, 0.7)
         n2 = fbm2(x, y, s + 2, 0.5, fp, 0.002, 0.92)
@@ -714,24 +748,13 @@ def ground_albedo(x, y, fp, zone, zmeta, lay, seed):
         k = (1.0 + var) * (1.0 - 0.55 * joint)
         k *= math.exp(0.2 * fbm2(x, y, s + 9, 2.0, fp, 0.002, 0.85))
         return 0.3 * k * (1 + tint), 0.28 * k, 0.26 * k * (1 - tint)
-    if zt != Z_ROAD and zt != Z_PARKING:  # under buildings
-        return 0.25, 0.24, 0.22
-    # asphalt
-    ag = 0.11 if zt == Z_ROAD else 0.14
-    k = math.exp(0.25 * fbm2(x, y, s + 10, 8.0, fp, 0.5, 0.6))
-    k *= math.exp(0.3 * fbm2(x, y, s + 11, 0.5, fp, 0.06, 0.8))
-    k *= math.exp(0.55 * fbm2(x, y, s + 19, 0.06, fp, 0.002, 0.95))  # aggregate grain
-    k *= 1.0 + 0.8 * spots(x, y, 0.15, 0.3, 0.004, 0.015, fp, s + 21)  # light stones
-    k *= 1.0 - 0.5 * spots(x, y, 0.9, 0.2, 0.03, 0.12, fp, s + 22)  # oil and tar spots
-    r = ag * k
-    g = ag * k
-    b = ag * k * 1.05
-    if zt == Z_PARKING:
-        oil = fbm2(x, y, s + 12, 3.0, fp, 0.1, 0.7)
-        if oil > 0.3:
-            r, g, b = r * 0.6, g * 0.6, b * 0.6
-        return r, g, b
-    # road-local coordinates: X0, Y0, Px, Py, road width, n blocks x, n blocks y
+    return 0.25, 0.24, 0.22  # under buildings
+
+
+@njit(cache=True)
+def road_marks(x, y, fp, lay, s, r, g, b):
+    """Road markings (centre and parking-lane lines, zebra crossings), manholes and drains over the
+    asphalt colour (r, g, b) of a road at (x, y); lay: X0, Y0, Px, Py, road width, blocks x, y."""
     lx = x - lay[0]
     ly = y - lay[1]
     rw = lay[4]
@@ -771,7 +794,13 @@ def ground_albedo(x, y, fp, zone, zmeta, lay, seed):
     if m > 0.0:
         wk = math.exp(0.2 * fbm2(x, y, s + 14, 0.3, fp, 0.002, 0.9))
         r, g, b = mix(r, 0.7 * wk, m), mix(g, 0.7 * wk, m), mix(b, 0.68 * wk, m)
-    # manholes every ~16 m
+    return road_fixtures(salong, across, ri, rw, fp, s, r, g, b)
+
+
+@njit(cache=True)
+def road_fixtures(salong, across, ri, rw, fp, s, r, g, b):
+    """Manholes every ~16 m and drains at the kerb of road ri, at (salong, across) metres along and
+    across it; else (r, g, b)."""
     c = np.int64(math.floor(salong / 16.0))
     if hashf(ri, c, s, 15) < 0.6:
         ca = c * 16.0 + 3.0 + 10.0 * hashf(ri, c, s, 16)
@@ -785,7 +814,6 @@ def ground_albedo(x, y, fp, zone, zmeta, lay, seed):
             grid = max(lines(da + dc, 0.06, 0.015, fp), lines(da - dc, 0.06, 0.015, fp))
             k = (1.0 + 0.6 * grid) * math.exp(0.25 * fbm2(da, dc, s + ri, 0.2, fp, 0.002, 0.8))
             return 0.07 * k, 0.065 * k, 0.06 * k
-    # drains at the kerb
     c = np.int64(math.floor(salong / 22.0))
     da = salong - (c * 22.0 + 11.0)
     for side in range(2):
@@ -795,6 +823,35 @@ def ground_albedo(x, y, fp, zone, zmeta, lay, seed):
             k = 1.0 - 0.8 * slot
             return 0.12 * k, 0.12 * k, 0.12 * k
     return r, g, b
+
+
+@njit(cache=True)
+def ground_albedo(x, y, fp, zone, zmeta, lay, seed):
+    """Albedo of the ground plane at (x, y): zone raster lookup + road markings, manholes, drains."""
+    zi = np.int64(math.floor((x - zmeta[0]) / zmeta[2]))
+    zj = np.int64(math.floor((y - zmeta[1]) / zmeta[2]))
+    zt = Z_FIELD
+    if 0 <= zi < zone.shape[1] and 0 <= zj < zone.shape[0]:
+        zt = zone[zj, zi]
+    s = seed * 16
+    if zt != Z_ROAD and zt != Z_PARKING:
+        return paved_albedo(zt, x, y, fp, s)
+    # asphalt
+    ag = 0.11 if zt == Z_ROAD else 0.14
+    k = math.exp(0.25 * fbm2(x, y, s + 10, 8.0, fp, 0.5, 0.6))
+    k *= math.exp(0.3 * fbm2(x, y, s + 11, 0.5, fp, 0.06, 0.8))
+    k *= math.exp(0.55 * fbm2(x, y, s + 19, 0.06, fp, 0.002, 0.95))  # aggregate grain
+    k *= 1.0 + 0.8 * spots(x, y, 0.15, 0.3, 0.004, 0.015, fp, s + 21)  # light stones
+    k *= 1.0 - 0.5 * spots(x, y, 0.9, 0.2, 0.03, 0.12, fp, s + 22)  # oil and tar spots
+    r = ag * k
+    g = ag * k
+    b = ag * k * 1.05
+    if zt == Z_PARKING:
+        oil = fbm2(x, y, s + 12, 3.0, fp, 0.1, 0.7)
+        if oil > 0.3:
+            r, g, b = r * 0.6, g * 0.6, b * 0.6
+        return r, g, b
+    return road_marks(x, y, fp, lay, s, r, g, b)
 
 
 # ------------------------------------------------------------------------------ ray casting
@@ -852,6 +909,45 @@ def ray_sphere(ox, oy, oz, dx, dy, dz, sph, i):
 
 
 @njit(cache=True)
+def clip_to_grid(ox, oy, oz, dx, dy, dz, gmeta, t_max):
+    """(t0, t1): the part of the ray o + t d, eps < t < t_max, inside the slab 0 <= z <= zmax over the
+    grid's rectangle (gmeta: x0, y0, cell, nx, ny, zmax); t0 >= t1 when it misses."""
+    gx0 = gmeta[0]
+    gy0 = gmeta[1]
+    cs = gmeta[2]
+    nx = np.int64(gmeta[3])
+    ny = np.int64(gmeta[4])
+    zmax = gmeta[5]
+    t0 = _EPS
+    t1 = t_max
+    for a in range(3):
+        o = ox if a == 0 else (oy if a == 1 else oz)
+        d = dx if a == 0 else (dy if a == 1 else dz)
+        lo = gx0 if a == 0 else (gy0 if a == 1 else 0.0)
+        hi = gx0 + nx * cs if a == 0 else (gy0 + ny * cs if a == 1 else zmax)
+        if d != 0.0:
+            ta = (lo - o) / d
+            tb = (hi - o) / d
+            if ta > tb:
+                ta, tb = tb, ta
+            t0 = max(t0, ta)
+            t1 = min(t1, tb)
+        elif o < lo or o > hi:
+            return _INF, 0.0
+    return t0, t1
+
+
+@njit(cache=True)
+def dda_axis(o, d, g0, cs, c):
+    """(step, t of the next cell boundary, t per cell) along one axis of the 2-D DDA, from cell c."""
+    if d > 0.0:
+        return 1, (g0 + (c + 1) * cs - o) / d, cs / d
+    if d < 0.0:
+        return -1, (g0 + c * cs - o) / d, -cs / d
+    return 0, _INF, _INF
+
+
+@njit(cache=True)
 def trace(ox, oy, oz, dx, dy, dz, boxes, sph, gmeta, cstart, citems, any_hit, skip):
     """Nearest hit along o + t d: (t, kind, index, face); kind 0 none, 1 ground, 2 box, 3 sphere.
 
@@ -874,24 +970,7 @@ def trace(ox, oy, oz, dx, dy, dz, boxes, sph, gmeta, cstart, citems, any_hit, sk
     cs = gmeta[2]
     nx = np.int64(gmeta[3])
     ny = np.int64(gmeta[4])
-    zmax = gmeta[5]
-    t0 = _EPS
-    t1 = best
-    # clip to the slab 0 <= z <= zmax and the grid rectangle
-    for a in range(3):
-        o = ox if a == 0 else (oy if a == 1 else oz)
-        d = dx if a == 0 else (dy if a == 1 else dz)
-        lo = gx0 if a == 0 else (gy0 if a == 1 else 0.0)
-        hi = gx0 + nx * cs if a == 0 else (gy0 + ny * cs if a == 1 else zmax)
-        if d != 0.0:
-            ta = (lo - o) / d
-            tb = (hi - o) / d
-            if ta > tb:
-                ta, tb = tb, ta
-            t0 = max(t0, ta)
-            t1 = min(t1, tb)
-        elif o < lo or o > hi:
-            return best, kind, idx, face
+    t0, t1 = clip_to_grid(ox, oy, oz, dx, dy, dz, gmeta, best)
     if t0 >= t1:
         return best, kind, idx, face
     ix = 1.0 / dx if dx != 0.0 else _INF
@@ -899,30 +978,8 @@ def trace(ox, oy, oz, dx, dy, dz, boxes, sph, gmeta, cstart, citems, any_hit, sk
     iz = 1.0 / dz if dz != 0.0 else _INF
     ci = min(max(np.int64((ox + t0 * dx - gx0) / cs), 0), nx - 1)
     cj = min(max(np.int64((oy + t0 * dy - gy0) / cs), 0), ny - 1)
-    if dx > 0.0:
-        sx = 1
-        tmx = (gx0 + (ci + 1) * cs - ox) / dx
-        tdx = cs / dx
-    elif dx < 0.0:
-        sx = -1
-        tmx = (gx0 + ci * cs - ox) / dx
-        tdx = -cs / dx
-    else:
-        sx = 0
-        tmx = _INF
-        tdx = _INF
-    if dy > 0.0:
-        sy = 1
-        tmy = (gy0 + (cj + 1) * cs - oy) / dy
-        tdy = cs / dy
-    elif dy < 0.0:
-        sy = -1
-        tmy = (gy0 + cj * cs - oy) / dy
-        tdy = -cs / dy
-    else:
-        sy = 0
-        tmy = _INF
-        tdy = _INF
+    sx, tmx, tdx = dda_axis(ox, dx, gx0, cs, ci)
+    sy, tmy, tdy = dda_axis(oy, dy, gy0, cs, cj)
     tin = t0
     while True:
         c = cj * nx + ci
@@ -997,6 +1054,50 @@ def sky(dx, dy, dz, light, seed):
 
 
 @njit(cache=True)
+def surface_normal(kind, face, idx, px, py, pz, sph):
+    """Unit normal of the hit: the ground (kind 1), box face `face` (kind 2), sphere idx (kind 3)."""
+    if kind == 1:
+        return 0.0, 0.0, 1.0
+    if kind == 2:
+        a = face // 2
+        sgn = -1.0 if face % 2 == 0 else 1.0
+        return (sgn if a == 0 else 0.0), (sgn if a == 1 else 0.0), (sgn if a == 2 else 0.0)
+    rs = sph[idx, 3]
+    return (px - sph[idx, 0]) / rs, (py - sph[idx, 1]) / rs, (pz - sph[idx, 2]) / rs
+
+
+@njit(cache=True)
+def foliage_albedo(px, py, pz, fp, par, bush):
+    """A tree crown or bush at (px, py, pz): clumps of leaves with dark gaps between them."""
+    fs = np.int64(par[P_SEED])
+    n1 = fbm3(px, py, pz, fs, 1.6, fp, 0.3, 0.7)  # clumps of leaves
+    n2 = fbm3(px, py, pz, fs + 1, 0.3, fp, 0.005, 0.85)  # leaves
+    k = math.exp(0.5 * n1 + 0.6 * n2)
+    gap = min(max((-n2 - 0.15) * 4.0, 0.0), 1.0) * fade(0.12, fp)  # holes between leaves: dark
+    k *= 1.0 - 0.7 * gap
+    dk = 0.7 if bush else 1.0
+    return par[P_R] * k * dk * (1.0 + 0.25 * n1), par[P_G] * k * dk, par[P_B] * k * dk
+
+
+@njit(cache=True)
+def sunlit(px, py, pz, nx, ny, nz, t, skip, boxes, sph, gmeta, cstart, citems, light):
+    """n . sun at the hit, 0 where the sun is below its surface or something shadows it."""
+    sx = light[L_SUN]
+    sy = light[L_SUN + 1]
+    sz = light[L_SUN + 2]
+    ndl = nx * sx + ny * sy + nz * sz
+    if ndl > 0.0 and light[L_SHADOW] > 0.0:
+        e = 2e-3 + 1e-5 * t
+        st = trace(
+            px + nx * e, py + ny * e, pz + nz * e, sx, sy, sz, boxes, sph, gmeta, cstart, citems,
+            np.int64(1), skip,
+        )  # fmt: skip
+        if st[1] != 0:
+            ndl = 0.0
+    return max(ndl, 0.0)
+
+
+@njit(cache=True)
 def radiance(
     ox, oy, oz, dx, dy, dz, f, boxes, bmat, bpar, sph, smat, spar, gmeta, cstart, citems,
     zone, zmeta, lay, atlas, aoff, adim, lut, light, seed,
@@ -1009,22 +1110,9 @@ def radiance(
         return sky(dx, dy, dz, light, seed)
     px = ox + t * dx
     py = oy + t * dy
-    pz = oz + t * dz
+    pz = 0.0 if kind == 1 else oz + t * dz
     dn = math.sqrt(dx * dx + dy * dy + dz * dz)
-    if kind == 1:
-        nx, ny, nz = 0.0, 0.0, 1.0
-        pz = 0.0
-    elif kind == 2:
-        a = face // 2
-        sgn = -1.0 if face % 2 == 0 else 1.0
-        nx = sgn if a == 0 else 0.0
-        ny = sgn if a == 1 else 0.0
-        nz = sgn if a == 2 else 0.0
-    else:
-        rs = sph[idx, 3]
-        nx = (px - sph[idx, 0]) / rs
-        ny = (py - sph[idx, 1]) / rs
-        nz = (pz - sph[idx, 2]) / rs
+    nx, ny, nz = surface_normal(kind, face, idx, px, py, pz, sph)
     cosi = abs(nx * dx + ny * dy + nz * dz) / dn
     fp = t / f / max(cosi, 0.05)
     if kind == 1:
@@ -1032,45 +1120,13 @@ def radiance(
     elif kind == 2:
         r, g, b = box_albedo(bmat[idx], face, px, py, pz, boxes[idx], bpar[idx], fp, atlas, aoff, adim, lut)
     else:
-        fs = np.int64(spar[idx, P_SEED])
-        n1 = fbm3(px, py, pz, fs, 1.6, fp, 0.3, 0.7)  # clumps of leaves
-        n2 = fbm3(px, py, pz, fs + 1, 0.3, fp, 0.005, 0.85)  # leaves
-        k = math.exp(0.5 * n1 + 0.6 * n2)
-        gap = min(max((-n2 - 0.15) * 4.0, 0.0), 1.0) * fade(0.12, fp)  # holes between leaves: dark
-        k *= 1.0 - 0.7 * gap
-        dk = 0.7 if smat[idx] == MAT_BUSH else 1.0
-        r = spar[idx, P_R] * k * dk * (1.0 + 0.25 * n1)
-        g = spar[idx, P_G] * k * dk
-        b = spar[idx, P_B] * k * dk
+        r, g, b = foliage_albedo(px, py, pz, fp, spar[idx], smat[idx] == MAT_BUSH)
         # crowns are rough: soften the normal towards up
         nz = 0.6 * nz + 0.4
         nn = math.sqrt(nx * nx + ny * ny + nz * nz)
         nx, ny, nz = nx / nn, ny / nn, nz / nn
-    sx = light[L_SUN]
-    sy = light[L_SUN + 1]
-    sz = light[L_SUN + 2]
-    ndl = nx * sx + ny * sy + nz * sz
-    if ndl > 0.0 and light[L_SHADOW] > 0.0:
-        e = 2e-3 + 1e-5 * t
-        skip = idx + boxes.shape[0] if kind == 3 else np.int64(-1)
-        st = trace(
-            px + nx * e,
-            py + ny * e,
-            pz + nz * e,
-            sx,
-            sy,
-            sz,
-            boxes,
-            sph,
-            gmeta,
-            cstart,
-            citems,
-            np.int64(1),
-            skip,
-        )
-        if st[1] != 0:
-            ndl = 0.0
-    ndl = max(ndl, 0.0)
+    skip = idx + boxes.shape[0] if kind == 3 else np.int64(-1)
+    ndl = sunlit(px, py, pz, nx, ny, nz, t, skip, boxes, sph, gmeta, cstart, citems, light)
     amb = 0.75 + 0.25 * nz
     lr = light[L_AMB] * amb + light[L_SUNC] * ndl
     lg = light[L_AMB + 1] * amb + light[L_SUNC + 1] * ndl

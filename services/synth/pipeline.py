@@ -117,6 +117,113 @@ def noisy_pos(views: list[View], conf: dict, frame: LocalFrame, rng: np.random.G
     return records
 
 
+def render_views(
+    renderer: Renderer,
+    views: list[View],
+    cams: dict[str, Camera],
+    lights: dict[str, np.ndarray],
+    conf: dict,
+    seed: int,
+    ss: int,
+    out_dir: Path,
+) -> tuple[list[np.ndarray], list[np.ndarray], list[tuple[str, str, float]]]:
+    """Render every view (ground first: their sample points are tested against every aerial depth) to
+    images/ and gt/depth.h5; (true surface points, their colours, co-visible aerial-ground pairs)."""
+    gtc = conf["gt"]
+    n_per = max(1, math.ceil(gtc["n_points"] / len(views)))
+    ground_pts: dict[str, np.ndarray] = {}
+    covis: list[tuple[str, str, float]] = []
+    points, colours = [], []
+    with h5py.File(out_dir / DEPTH_FILE, "w", track_order=True) as h5:
+        for idx, v in enumerate(tqdm(views, desc="synth", unit="img")):
+            t1 = time.perf_counter()
+            cam = cams[v.image_set]
+            lin, depth = renderer(v, cam, lights[v.image_set], ss)
+            rgb = develop(lin, conf["lighting"][v.image_set], np.random.default_rng([seed, 1, idx]))
+            (out_dir / "images" / v.name).write_bytes(encode_jpeg(rgb, conf["render"]["jpeg_quality"]))
+            h5.create_dataset(
+                depth_key(v.name), data=depth, compression="gzip", compression_opts=4, shuffle=True,
+                track_times=False,
+            )  # fmt: skip
+            # true surface points for gt/sparse
+            ii, jj = np.nonzero((depth > 0) & (depth < gtc["max_point_depth"]))
+            if len(ii):
+                pick = np.random.default_rng([seed, 2, idx]).choice(
+                    len(ii), min(n_per, len(ii)), replace=False
+                )
+                pick.sort()
+                uv = np.stack([jj[pick] + 0.5, ii[pick] + 0.5], 1)
+                points.append(v.pose.unproject(cam.K, uv, depth[ii[pick], jj[pick]].astype(np.float64)))
+                colours.append(rgb[ii[pick], jj[pick]])
+            # co-visibility
+            if v.image_set == "ground":
+                uv, d = pixel_grid(depth, gtc["covis_step"])
+                ground_pts[v.name] = v.pose.unproject(cam.K, uv, d)
+            else:
+                for g in (w for w in views if w.image_set == "ground"):
+                    ov = visible_fraction(ground_pts[g.name], cam, v.pose, depth)
+                    if ov >= gtc["covis_min"]:
+                        covis.append((v.name, g.name, ov))
+            sky = float((depth == 0).mean())
+            log.info(
+                "%s (%s) rendered in %.1f s, sky %.0f%%", v.name, v.kind, time.perf_counter() - t1, 100 * sky
+            )
+    return points, colours, covis
+
+
+def write_truth(
+    out_dir: Path,
+    conf: dict,
+    seed: int,
+    ss: int,
+    textures_dir: Path | None,
+    scene: Scene,
+    aerial: list[View],
+    ground: list[View],
+    cams: dict[str, Camera],
+    lights: dict[str, np.ndarray],
+    points: list[np.ndarray],
+    colours: list[np.ndarray],
+    covis: list[tuple[str, str, float]],
+    r_pos: np.random.Generator,
+) -> np.ndarray:
+    """pos.csv (noisy POS), cameras.json, gt/sparse (true poses and surface points), gt/covisible.csv
+    and gt/scene.json; the true points (P, 3)."""
+    frame = LocalFrame(**conf["origin"])
+    all_views = aerial + ground
+    write_pos_csv(out_dir / "pos.csv", noisy_pos(all_views, conf["pos"], frame, r_pos))
+    write_cameras_json(out_dir / "cameras.json", cams)
+    P = np.concatenate(points) if points else np.zeros((0, 3))
+    Cl = np.concatenate(colours) if colours else np.zeros((0, 3), np.uint8)
+    write_model(out_dir / "gt" / "sparse", cams, {v.name: (v.image_set, v.pose) for v in all_views}, P, Cl)
+    write_covisible(out_dir / "gt" / "covisible.csv", covis)
+    meta = {
+        "preset": conf["name"],
+        "seed": seed,
+        "supersample": ss,
+        "textures": str(textures_dir) if textures_dir is not None else None,
+        "conf": conf,
+        "origin": conf["origin"],
+        "frame": "local ENU (metres, z up), ground plane z = 0",
+        "lighting": {
+            k: {**conf["lighting"][k], "sun_vector": np.round(lights[k][L_SUN : L_SUN + 3], 6).tolist()}
+            for k in cams
+        },
+        "views": [{"name": v.name, "kind": v.kind, "center": np.round(v.C, 6).tolist()} for v in all_views],
+        "counts": {
+            "aerial": len(aerial),
+            "ground": len(ground),
+            "covisible": len(covis),
+            "points": len(P),
+            "boxes": len(scene.boxes),
+            "spheres": len(scene.sph),
+        },
+        "primitives": scene.to_json(),
+    }
+    (out_dir / "gt" / "scene.json").write_text(json.dumps(meta, indent=1))
+    return P
+
+
 def main(
     conf: dict,
     out_dir: Path,
@@ -152,90 +259,11 @@ def main(
             conf["name"], seed, len(scene.boxes), len(scene.sph), len(aerial), len(ground), ss, ss,
         )  # fmt: skip
         renderer = Renderer(scene, photos, seed, conf["render"]["grid_cell"])
-        gtc = conf["gt"]
-        views = ground + aerial  # ground first: their sample points are tested against every aerial depth
-        n_per = max(1, math.ceil(gtc["n_points"] / len(views)))
-        ground_pts: dict[str, np.ndarray] = {}
-        covis: list[tuple[str, str, float]] = []
-        points, colours = [], []
-        with h5py.File(out_dir / DEPTH_FILE, "w", track_order=True) as h5:
-            for idx, v in enumerate(tqdm(views, desc="synth", unit="img")):
-                t1 = time.perf_counter()
-                cam = cams[v.image_set]
-                lin, depth = renderer(v, cam, lights[v.image_set], ss)
-                rgb = develop(lin, conf["lighting"][v.image_set], np.random.default_rng([seed, 1, idx]))
-                (out_dir / "images" / v.name).write_bytes(encode_jpeg(rgb, conf["render"]["jpeg_quality"]))
-                h5.create_dataset(
-                    depth_key(v.name),
-                    data=depth,
-                    compression="gzip",
-                    compression_opts=4,
-                    shuffle=True,
-                    track_times=False,
-                )
-                # true surface points for gt/sparse
-                ii, jj = np.nonzero((depth > 0) & (depth < gtc["max_point_depth"]))
-                if len(ii):
-                    pick = np.random.default_rng([seed, 2, idx]).choice(
-                        len(ii), min(n_per, len(ii)), replace=False
-                    )
-                    pick.sort()
-                    uv = np.stack([jj[pick] + 0.5, ii[pick] + 0.5], 1)
-                    points.append(v.pose.unproject(cam.K, uv, depth[ii[pick], jj[pick]].astype(np.float64)))
-                    colours.append(rgb[ii[pick], jj[pick]])
-                # co-visibility
-                if v.image_set == "ground":
-                    uv, d = pixel_grid(depth, gtc["covis_step"])
-                    ground_pts[v.name] = v.pose.unproject(cam.K, uv, d)
-                else:
-                    for g in ground:
-                        ov = visible_fraction(ground_pts[g.name], cam, v.pose, depth)
-                        if ov >= gtc["covis_min"]:
-                            covis.append((v.name, g.name, ov))
-                sky = float((depth == 0).mean())
-                log.info(
-                    "%s (%s) rendered in %.1f s, sky %.0f%%",
-                    v.name,
-                    v.kind,
-                    time.perf_counter() - t1,
-                    100 * sky,
-                )
-        frame = LocalFrame(**conf["origin"])
-        all_views = aerial + ground
-        write_pos_csv(out_dir / "pos.csv", noisy_pos(all_views, conf["pos"], frame, r_pos))
-        write_cameras_json(out_dir / "cameras.json", cams)
-        P = np.concatenate(points) if points else np.zeros((0, 3))
-        Cl = np.concatenate(colours) if colours else np.zeros((0, 3), np.uint8)
-        write_model(
-            out_dir / "gt" / "sparse", cams, {v.name: (v.image_set, v.pose) for v in all_views}, P, Cl
+        points, colours, covis = render_views(
+            renderer, ground + aerial, cams, lights, conf, seed, ss, out_dir
         )
-        write_covisible(out_dir / "gt" / "covisible.csv", covis)
-        meta = {
-            "preset": conf["name"],
-            "seed": seed,
-            "supersample": ss,
-            "textures": str(textures_dir) if textures_dir is not None else None,
-            "conf": conf,
-            "origin": conf["origin"],
-            "frame": "local ENU (metres, z up), ground plane z = 0",
-            "lighting": {
-                k: {**conf["lighting"][k], "sun_vector": np.round(lights[k][L_SUN : L_SUN + 3], 6).tolist()}
-                for k in cams
-            },
-            "views": [
-                {"name": v.name, "kind": v.kind, "center": np.round(v.C, 6).tolist()} for v in all_views
-            ],
-            "counts": {
-                "aerial": len(aerial),
-                "ground": len(ground),
-                "covisible": len(covis),
-                "points": len(P),
-                "boxes": len(scene.boxes),
-                "spheres": len(scene.sph),
-            },
-            "primitives": scene.to_json(),
-        }
-        (out_dir / "gt" / "scene.json").write_text(json.dumps(meta, indent=1))
+        P = write_truth(out_dir, conf, seed, ss, textures_dir, scene, aerial, ground, cams, lights, points,
+                        colours, covis, r_pos)  # fmt: skip
         log.info(
             "%d aerial + %d ground images, %d co-visible pairs, %d points in %.1f s -> %s",
             len(aerial), len(ground), len(covis), len(P), time.perf_counter() - t0, out_dir,

@@ -401,6 +401,81 @@ def block_sides(b: dict) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float
     ]
 
 
+def _fill_lot(
+    b: _Builder, blk: dict, lot: tuple, inner: tuple, conf: dict, rng: np.random.Generator, fill
+) -> None:
+    """One lot of a block: a building (set back from the lot's edges), or grass with trees and bushes,
+    or a parking lot with rows of cars; its zone painted with `fill`."""
+    lx0, ly0, lx1, ly1 = lot
+    if rng.random() < conf["p_building"]:
+        m = [
+            rng.uniform(0.0, 0.8) if abs(v - w) < 1e-6 else rng.uniform(0.5, 2.5)
+            for v, w in zip(lot, inner, strict=True)
+        ]
+        fp = (_snap(lx0 + m[0]), _snap(ly0 + m[1]), _snap(lx1 - m[2]), _snap(ly1 - m[3]))
+        fill(*fp, Z_UNDER)
+        b.building(fp, conf)
+        blk["lots"].append({"rect": list(lot), "use": "building", "footprint": list(fp)})
+        return
+    use = "grass" if rng.random() < 0.6 else "parking"
+    blk["lots"].append({"rect": list(lot), "use": use})
+    fill(lx0 + 0.5, ly0 + 0.5, lx1 - 0.5, ly1 - 0.5, Z_GRASS if use == "grass" else Z_PARKING)
+    if use == "grass":
+        for _ in range(int(rng.integers(1, 4))):
+            b.tree(rng.uniform(lx0 + 2.5, lx1 - 2.5), rng.uniform(ly0 + 2.5, ly1 - 2.5), small=True)
+        for _ in range(int(rng.integers(2, 7))):
+            b.bush(rng.uniform(lx0 + 1.5, lx1 - 1.5), rng.uniform(ly0 + 1.5, ly1 - 1.5))
+        return
+    y = ly0 + 3.0  # rows of parked cars along x
+    while y < ly1 - 3.0:
+        x = lx0 + 1.5
+        while x < lx1 - 1.5:
+            if rng.random() < 0.7 * conf["clutter"]:
+                b.car(x, y, 1)
+            x += 2.6
+        y += 6.5
+
+
+def _kerbs(b: _Builder, x0: float, y0: float, x1: float, y1: float) -> None:
+    """The four kerbs of a block."""
+    k = 0.2
+    for lo, hi in (
+        ((x0, y0, 0), (x1, y0 + k, 0.12)),
+        ((x0, y1 - k, 0), (x1, y1, 0.12)),
+        ((x0, y0 + k, 0), (x0 + k, y1 - k, 0.12)),
+        ((x1 - k, y0 + k, 0), (x1, y1 - k, 0.12)),
+    ):
+        b.box(lo, hi, MAT_KERB, b.par((0.45, 0.44, 0.42)))
+
+
+def _street_furniture(b: _Builder, blk: dict, conf: dict, sw: float, rng: np.random.Generator) -> None:
+    """Along the 4 sides of a block: parked cars in the road's parking lane, street trees, lamps and
+    now and then a kiosk."""
+    for start, tan, nrm, length in block_sides(blk):
+        axis = 0 if tan[0] != 0 else 1
+        s = rng.uniform(4.0, 7.0)
+        while s < length - 7.0:
+            L = 5.2
+            if rng.random() < 0.65 * conf["clutter"]:
+                p = start + (s + L / 2) * tan - 1.2 * nrm
+                b.car(p[0], p[1], axis)
+            s += L + rng.uniform(0.3, 3.0)
+        if rng.random() < 0.55:  # street trees
+            s = rng.uniform(3.0, 8.0)
+            while s < length - 3.0:
+                p = start + s * tan + 0.9 * nrm
+                b.tree(p[0], p[1])
+                s += rng.uniform(8.0, 13.0)
+        s = rng.uniform(5.0, 15.0)  # lamps
+        while s < length - 3.0:
+            p = start + s * tan + 0.45 * nrm
+            b.lamp(p[0], p[1], -nrm[0], -nrm[1])
+            s += rng.uniform(22.0, 28.0)
+        if rng.random() < 0.25 * conf["clutter"]:  # kiosk
+            p = start + rng.uniform(8.0, max(length - 8.0, 8.5)) * tan + (sw * 0.55) * nrm
+            b.kiosk(p[0], p[1], axis)
+
+
 def make_scene(conf: dict, rng: np.random.Generator, photo: bool = False) -> Scene:
     """Generate the block grid of `conf` (see presets.py, key "scene")."""
     nbx, nby = conf["blocks"]
@@ -431,70 +506,9 @@ def make_scene(conf: dict, rng: np.random.Generator, photo: bool = False) -> Sce
             inner = (x0 + sw, y0 + sw, x1 - sw, y1 - sw)
             fill(*inner, Z_PAVED)
             for lot in _split_lots(inner, conf["lot_min"], conf["lot_max"], rng):
-                lx0, ly0, lx1, ly1 = lot
-                if rng.random() < conf["p_building"]:
-                    m = [
-                        rng.uniform(0.0, 0.8) if abs(v - w) < 1e-6 else rng.uniform(0.5, 2.5)
-                        for v, w in zip(lot, inner, strict=True)
-                    ]
-                    fp = (_snap(lx0 + m[0]), _snap(ly0 + m[1]), _snap(lx1 - m[2]), _snap(ly1 - m[3]))
-                    fill(*fp, Z_UNDER)
-                    b.building(fp, conf)
-                    blk["lots"].append({"rect": list(lot), "use": "building", "footprint": list(fp)})
-                    continue
-                use = "grass" if rng.random() < 0.6 else "parking"
-                blk["lots"].append({"rect": list(lot), "use": use})
-                fill(lx0 + 0.5, ly0 + 0.5, lx1 - 0.5, ly1 - 0.5, Z_GRASS if use == "grass" else Z_PARKING)
-                if use == "grass":
-                    for _ in range(int(rng.integers(1, 4))):
-                        b.tree(
-                            rng.uniform(lx0 + 2.5, lx1 - 2.5), rng.uniform(ly0 + 2.5, ly1 - 2.5), small=True
-                        )
-                    for _ in range(int(rng.integers(2, 7))):
-                        b.bush(rng.uniform(lx0 + 1.5, lx1 - 1.5), rng.uniform(ly0 + 1.5, ly1 - 1.5))
-                else:  # rows of parked cars along x
-                    y = ly0 + 3.0
-                    while y < ly1 - 3.0:
-                        x = lx0 + 1.5
-                        while x < lx1 - 1.5:
-                            if rng.random() < 0.7 * conf["clutter"]:
-                                b.car(x, y, 1)
-                            x += 2.6
-                        y += 6.5
-            # kerbs
-            k = 0.2
-            for lo, hi in (
-                ((x0, y0, 0), (x1, y0 + k, 0.12)),
-                ((x0, y1 - k, 0), (x1, y1, 0.12)),
-                ((x0, y0 + k, 0), (x0 + k, y1 - k, 0.12)),
-                ((x1 - k, y0 + k, 0), (x1, y1 - k, 0.12)),
-            ):
-                b.box(lo, hi, MAT_KERB, b.par((0.45, 0.44, 0.42)))
-            # street furniture along the 4 sides
-            for start, tan, nrm, length in block_sides(blk):
-                axis = 0 if tan[0] != 0 else 1
-                # parked cars in the parking lane of the road next to this side
-                s = rng.uniform(4.0, 7.0)
-                while s < length - 7.0:
-                    L = 5.2
-                    if rng.random() < 0.65 * conf["clutter"]:
-                        p = start + (s + L / 2) * tan - 1.2 * nrm
-                        b.car(p[0], p[1], axis)
-                    s += L + rng.uniform(0.3, 3.0)
-                if rng.random() < 0.55:  # street trees
-                    s = rng.uniform(3.0, 8.0)
-                    while s < length - 3.0:
-                        p = start + s * tan + 0.9 * nrm
-                        b.tree(p[0], p[1])
-                        s += rng.uniform(8.0, 13.0)
-                s = rng.uniform(5.0, 15.0)  # lamps
-                while s < length - 3.0:
-                    p = start + s * tan + 0.45 * nrm
-                    b.lamp(p[0], p[1], -nrm[0], -nrm[1])
-                    s += rng.uniform(22.0, 28.0)
-                if rng.random() < 0.25 * conf["clutter"]:  # kiosk
-                    p = start + rng.uniform(8.0, max(length - 8.0, 8.5)) * tan + (sw * 0.55) * nrm
-                    b.kiosk(p[0], p[1], axis)
+                _fill_lot(b, blk, lot, inner, conf, rng, fill)
+            _kerbs(b, x0, y0, x1, y1)
+            _street_furniture(b, blk, conf, sw, rng)
     xs0, ys0 = X0 + ctx * Px, Y0 + ctx * Py
     surveyed = np.array([xs0, ys0, xs0 + nbx * Px + Rw, ys0 + nby * Py + Rw])
     f8 = lambda a, n: np.asarray(a, np.float64).reshape(-1, n)  # noqa: E731

@@ -133,6 +133,102 @@ def rasterize_fwd(gdata, rects, gids, offsets, width, height, tiles_x, bg, tile_
     return out, out_T, out_last
 
 
+@njit(inline="always", fastmath=True)
+def _bwd_tile(final_T, last, v_color, v_alpha, bg, X0, Y0, X1, Y1, C):
+    """One tile's state for the backward pass, per pixel: transmittance (running and final), colour
+    behind the current Gaussian (background included), the loss gradients, the last Gaussian; and the
+    largest of those."""
+    T = np.ones(NPIX, np.float32)
+    Tf = np.ones(NPIX, np.float32)
+    S = np.zeros((NPIX, C), np.float32)
+    vC = np.zeros((NPIX, C), np.float32)
+    vA = np.zeros(NPIX, np.float32)
+    lst = np.full(NPIX, -1, np.int64)
+    kmax = -1
+    for y in range(Y0, Y1):
+        for x in range(X0, X1):
+            p = (y - Y0) * TILE + x - X0
+            T[p] = final_T[y, x]
+            Tf[p] = final_T[y, x]
+            vA[p] = v_alpha[y, x]
+            lst[p] = last[y, x]
+            kmax = max(kmax, lst[p])
+            for ch in range(C):
+                S[p, ch] = bg[ch]
+                vC[p, ch] = v_color[y, x, ch]
+    return T, Tf, S, vC, vA, lst, kmax
+
+
+@njit(inline="always", fastmath=True)
+def _bwd_gaussian(k, g, gdata, rects, X0, Y0, X1, Y1, C, T, Tf, S, vC, vA, lst, gcol, grads):
+    """Intersection k (Gaussian g) of a tile, back to front: its gradients into grads[k], the tile's
+    transmittance and colour-behind rolled back past it."""
+    mx, my = gdata[g, 0], gdata[g, 1]
+    a, b, c, o = gdata[g, 2], gdata[g, 3], gdata[g, 4], gdata[g, 5]
+    x0, x1 = max(rects[g, 0], X0), min(rects[g, 2], X1)
+    gmx = np.float32(0.0)
+    gmy = np.float32(0.0)
+    ga = np.float32(0.0)
+    gb = np.float32(0.0)
+    gc = np.float32(0.0)
+    go = np.float32(0.0)
+    gcol[:] = 0
+    Q = math.exp(-a)
+    L = math.log(o / _AMIN)
+    for y in range(max(rects[g, 1], Y0), min(rects[g, 3], Y1)):
+        dy = np.float32(y) + np.float32(0.5) - my
+        xs, xe, Gn, R = _row(a, b, c, L, mx, dy, x0, x1)
+        row = (y - Y0) * TILE - X0
+        r0 = np.float32(0.0)  # sums over the row of vp, vp dx, vp dx^2 (dy is constant)
+        r1 = np.float32(0.0)
+        r2 = np.float32(0.0)
+        for x in range(xs, xe):
+            G = Gn
+            Gn *= R
+            R *= Q
+            p = row + x
+            if k > lst[p]:
+                continue
+            raw = o * G
+            if raw < _AMIN:
+                continue
+            dx = np.float32(x) + np.float32(0.5) - mx
+            alpha = min(raw, _AMAX)
+            om = np.float32(1.0) - alpha
+            inv = np.float32(1.0) / om
+            Ti = T[p] * inv
+            T[p] = Ti
+            w = alpha * Ti
+            v_a = np.float32(0.0)
+            for ch in range(C):
+                col = gdata[g, 6 + ch]
+                gcol[ch] += w * vC[p, ch]
+                v_a += (col - S[p, ch]) * vC[p, ch]
+                S[p, ch] = alpha * col + om * S[p, ch]
+            v_a = v_a * Ti + vA[p] * Tf[p] * inv
+            if raw <= _AMAX:  # (clamped alphas pass no gradient)
+                go += G * v_a
+                vp = raw * v_a  # d loss / d power
+                vpx = vp * dx
+                r0 += vp
+                r1 += vpx
+                r2 += vpx * dx
+        # power = -(a dx^2 + c dy^2) / 2 - b dx dy with dx = x + 0.5 - mean x
+        ga += np.float32(-0.5) * r2
+        gb -= dy * r1
+        gc += np.float32(-0.5) * dy * dy * r0
+        gmx += a * r1 + b * dy * r0
+        gmy += b * r1 + c * dy * r0
+    grads[k, 0] = gmx
+    grads[k, 1] = gmy
+    grads[k, 2] = ga
+    grads[k, 3] = gb
+    grads[k, 4] = gc
+    grads[k, 5] = go
+    for ch in range(C):
+        grads[k, 6 + ch] = gcol[ch]
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def rasterize_bwd(
     gdata, rects, gids, offsets, width, height, tiles_x, bg, tile_order, final_T, last, v_color, v_alpha
@@ -149,91 +245,10 @@ def rasterize_bwd(
         Y0 = (t // tiles_x) * TILE
         X1 = min(X0 + TILE, width)
         Y1 = min(Y0 + TILE, height)
-        T = np.ones(NPIX, np.float32)
-        Tf = np.ones(NPIX, np.float32)
-        S = np.zeros((NPIX, C), np.float32)  # colour behind the current Gaussian, background included
-        vC = np.zeros((NPIX, C), np.float32)
-        vA = np.zeros(NPIX, np.float32)
-        lst = np.full(NPIX, -1, np.int64)
-        kmax = -1
-        for y in range(Y0, Y1):
-            for x in range(X0, X1):
-                p = (y - Y0) * TILE + x - X0
-                T[p] = final_T[y, x]
-                Tf[p] = final_T[y, x]
-                vA[p] = v_alpha[y, x]
-                lst[p] = last[y, x]
-                kmax = max(kmax, lst[p])
-                for ch in range(C):
-                    S[p, ch] = bg[ch]
-                    vC[p, ch] = v_color[y, x, ch]
+        T, Tf, S, vC, vA, lst, kmax = _bwd_tile(final_T, last, v_color, v_alpha, bg, X0, Y0, X1, Y1, C)
         gcol = np.zeros(C, np.float32)
         for k in range(kmax, offsets[t] - 1, -1):
-            g = gids[k]
-            mx, my = gdata[g, 0], gdata[g, 1]
-            a, b, c, o = gdata[g, 2], gdata[g, 3], gdata[g, 4], gdata[g, 5]
-            x0, x1 = max(rects[g, 0], X0), min(rects[g, 2], X1)
-            gmx = np.float32(0.0)
-            gmy = np.float32(0.0)
-            ga = np.float32(0.0)
-            gb = np.float32(0.0)
-            gc = np.float32(0.0)
-            go = np.float32(0.0)
-            gcol[:] = 0
-            Q = math.exp(-a)
-            L = math.log(o / _AMIN)
-            for y in range(max(rects[g, 1], Y0), min(rects[g, 3], Y1)):
-                dy = np.float32(y) + np.float32(0.5) - my
-                xs, xe, Gn, R = _row(a, b, c, L, mx, dy, x0, x1)
-                row = (y - Y0) * TILE - X0
-                r0 = np.float32(0.0)  # sums over the row of vp, vp dx, vp dx^2 (dy is constant)
-                r1 = np.float32(0.0)
-                r2 = np.float32(0.0)
-                for x in range(xs, xe):
-                    G = Gn
-                    Gn *= R
-                    R *= Q
-                    p = row + x
-                    if k > lst[p]:
-                        continue
-                    raw = o * G
-                    if raw < _AMIN:
-                        continue
-                    dx = np.float32(x) + np.float32(0.5) - mx
-                    alpha = min(raw, _AMAX)
-                    om = np.float32(1.0) - alpha
-                    inv = np.float32(1.0) / om
-                    Ti = T[p] * inv
-                    T[p] = Ti
-                    w = alpha * Ti
-                    v_a = np.float32(0.0)
-                    for ch in range(C):
-                        col = gdata[g, 6 + ch]
-                        gcol[ch] += w * vC[p, ch]
-                        v_a += (col - S[p, ch]) * vC[p, ch]
-                        S[p, ch] = alpha * col + om * S[p, ch]
-                    v_a = v_a * Ti + vA[p] * Tf[p] * inv
-                    if raw <= _AMAX:  # (clamped alphas pass no gradient)
-                        go += G * v_a
-                        vp = raw * v_a  # d loss / d power
-                        vpx = vp * dx
-                        r0 += vp
-                        r1 += vpx
-                        r2 += vpx * dx
-                # power = -(a dx^2 + c dy^2) / 2 - b dx dy with dx = x + 0.5 - mean x
-                ga += np.float32(-0.5) * r2
-                gb -= dy * r1
-                gc += np.float32(-0.5) * dy * dy * r0
-                gmx += a * r1 + b * dy * r0
-                gmy += b * r1 + c * dy * r0
-            grads[k, 0] = gmx
-            grads[k, 1] = gmy
-            grads[k, 2] = ga
-            grads[k, 3] = gb
-            grads[k, 4] = gc
-            grads[k, 5] = go
-            for ch in range(C):
-                grads[k, 6 + ch] = gcol[ch]
+            _bwd_gaussian(k, gids[k], gdata, rects, X0, Y0, X1, Y1, C, T, Tf, S, vC, vA, lst, gcol, grads)
     return grads
 
 
