@@ -111,9 +111,9 @@ def pnp_accuracy(scene: Path, job: pipeline.Job) -> dict:
     """The reducer's accepted ground poses against the true centres (model frame aligned to the truth)."""
     from services.colmap_model import read_model
 
-    s, R, t = truth_alignment(scene, job.dir("sfm") / "sparse")
+    s, R, t = truth_alignment(scene, job.sfm.sparse)
     _, gt = read_model(scene / "gt" / "sparse")
-    doc = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
+    doc = json.loads((job.transfer.ground_poses).read_text())["images"]
     errs = []
     for g, r in doc.items():
         if r.get("accepted") and g in gt:
@@ -318,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     timings["direct same budget"] = time.perf_counter() - t0
     for (r, p, mt), job in jobs.items():
         files[f"midview {config_name(r, p, mt, args.block_steps).replace('-', ' ', 1)}"] = (
-            job.dir("transfer") / "matches.h5"
+            job.transfer.matches
         )
     rows = []
     for label, path in files.items():
@@ -371,11 +371,11 @@ def main(argv: list[str] | None = None) -> int:
     for (r, p, mt), job in jobs.items():
         pa = pnp_accuracy(scene, job)
         label = config_name(r, p, mt, args.block_steps).replace("-", " ", 1)
-        nv = len(json.loads((job.dir("views") / "views.json").read_text())["views"])
+        nv = len(json.loads((job.views.doc).read_text())["views"])
         row = {"pnp": pa, "num_views": nv}
         cells = [label, str(nv), pa["accepted"], _f(pa["mean_m"]), _f(pa["max_m"])]
         if not args.no_sfm:
-            ev = evaluate_sfm(scene, job.dir("combined") / "sparse", out / "eval" / f"sfm-{job.root.name}")
+            ev = evaluate_sfm(scene, job.combined.sparse, out / "eval" / f"sfm-{job.root.name}")
             ps = ev["per_set"]
             row["sfm"] = ev
             ab, aa = ps["ground"]["absolute_error"], ps["ground"]["aerial_aligned_error"]

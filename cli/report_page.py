@@ -232,7 +232,7 @@ def _artifacts(job: pipeline.Job, blobs: dict[str, str]) -> list[dict]:
 
 def _pair_answers(job: pipeline.Job, scene: Path | None) -> dict[str, Any]:
     """/jobs/J/pairs and each pair's matches, with their truth on a synthetic survey (`scene`)."""
-    matches = job.dir("transfer") / "matches.h5"
+    matches = job.transfer.matches
     if not matches.is_file():
         return {}
     method, pairs = list_pairs(matches)

@@ -222,7 +222,7 @@ def run(
         f"{sum(r['skipped'] for r in results.values())} up to date, {time.perf_counter() - t0:.0f} s"
     )
     if "combined_sfm" in results:
-        rep = json.loads((job.dir("combined") / "report.json").read_text())
+        rep = json.loads((job.combined.report).read_text())
         typer.echo(
             f"combined model: NRI aerial {rep['NRI']['aerial']}, ground {rep['NRI']['ground']}, "
             f"N3P {rep['num_points3D']} -> {job.dir('combined') / 'sparse'}"
@@ -234,7 +234,7 @@ def run(
         if (rep.get("gis") or {}).get("files"):
             typer.echo(f"GIS outputs ({rep['gis']['crs']}): {job.dir('combined') / 'gis'}")
     if "splat_all" in results:
-        m = json.loads((job.dir("splat_all") / "metrics.json").read_text())
+        m = json.loads((job.splat_all.metrics).read_text())
         typer.echo(
             f"3DGS on all images: {m['num_views']['aerial']} aerial + "
             f"{m['num_views']['ground']} ground views, "
@@ -258,16 +258,16 @@ def baseline_reconstruction(job, label: str, match_file: Path, match_conf: dict,
     reduce.localize_direct(
         job.transfer_conf(),
         match_file,
-        job.dir("sfm") / "sparse",
+        job.sfm.sparse,
         job.pos,
         job.cameras,
-        job.dir("sfm") / "georef.json",
+        job.sfm.georef,
         tdir,
     )
     fpath = out_dir / "features" / f"{feature_conf(match_conf)['output']}.h5"
     return combined_sfm.main(
         job.combined_conf(),
-        job.dir("sfm"),
+        job.sfm.dir,
         tdir,
         fpath,
         match_conf,
@@ -508,14 +508,14 @@ def demo(
                 except Exception as e:  # a baseline that cannot reconstruct reports no NRI
                     logger.warning("no reconstruction with the %s matches: %s", label, e)
         timings["baselines_sfm"] = time.perf_counter() - t0
-    files["midview"] = job.dir("transfer") / "matches.h5"
+    files["midview"] = job.transfer.matches
     t0 = time.perf_counter()
     rows = []
     for label, path in files.items():
         s = evaluate_matches(scene, path, out / "eval" / path.stem)
         s["method"] = label
         rows.append(s)
-    sfm_evals["midview"] = evaluate_sfm(scene, job.dir("combined") / "sparse", out / "eval" / "combined")
+    sfm_evals["midview"] = evaluate_sfm(scene, job.combined.sparse, out / "eval" / "combined")
     timings["evaluation"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     print_table(rows, sfm_evals, console)

@@ -91,6 +91,68 @@ def parse_settings_overrides(
 
 
 # -- job folder ----------------------------------------------------------------------------------
+class _File:
+    """A named file (or folder) of a stage's folder: `job.sfm.sparse` is JOB/sfm/sparse."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __get__(self, folder: Folder | None, owner: type | None = None) -> Any:
+        return self if folder is None else folder.dir / self.name
+
+
+class Folder:
+    """A stage's folder of a job (`dir`) and, in subclasses, its named files."""
+
+    def __init__(self, path: Path) -> None:
+        self.dir = path
+
+    def __truediv__(self, name: str) -> Path:
+        return self.dir / name
+
+    def glob(self, pattern: str) -> list[Path]:
+        return sorted(self.dir.glob(pattern))
+
+
+class SfmFolder(Folder):
+    sparse = _File("sparse")
+    georef = _File("georef.json")
+    database = _File("database.db")
+    report = _File("report.json")
+
+
+class SplatFolder(Folder):
+    model = _File("point_cloud.ply")
+    metrics = _File("metrics.json")
+    skipped = _File("skipped.json")
+
+
+class PlanFolder(Folder):
+    views = _File("views.json")
+
+
+class BlocksFolder(Folder):
+    plan = _File("plan.json")
+    report = _File("report.json")
+
+
+class ViewsFolder(Folder):
+    doc = _File("views.json")
+
+
+class TransferFolder(Folder):
+    matches = _File("matches.h5")
+    ground_poses = _File("ground_poses.json")
+    database = _File("database.db")
+    report = _File("report.json")
+
+
+class CombinedFolder(Folder):
+    sparse = _File("sparse")
+    georef = _File("georef.json")
+    report = _File("report.json")
+
+
 class Job:
     """A job folder: inputs, options, settings and the paths of every stage's files."""
 
@@ -182,6 +244,42 @@ class Job:
 
     def dir(self, name: str) -> Path:
         return self.root / name
+
+    @property
+    def sfm(self) -> SfmFolder:
+        return SfmFolder(self.dir("sfm"))
+
+    @property
+    def splat(self) -> SplatFolder:
+        return SplatFolder(self.dir("splat"))
+
+    @property
+    def plan(self) -> PlanFolder:
+        return PlanFolder(self.dir("plan"))
+
+    @property
+    def blocks(self) -> BlocksFolder:
+        return BlocksFolder(self.dir("blocks"))
+
+    @property
+    def views(self) -> ViewsFolder:
+        return ViewsFolder(self.dir("views"))
+
+    @property
+    def matches(self) -> Folder:
+        return Folder(self.dir("matches"))
+
+    @property
+    def transfer(self) -> TransferFolder:
+        return TransferFolder(self.dir("transfer"))
+
+    @property
+    def combined(self) -> CombinedFolder:
+        return CombinedFolder(self.dir("combined"))
+
+    @property
+    def splat_all(self) -> SplatFolder:
+        return SplatFolder(self.dir("splat_all"))
 
     @property
     def stages_dir(self) -> Path:
@@ -279,23 +377,21 @@ class Job:
         if self.settings["renderer"] == "gt":
             if not self.settings.get("scene"):
                 raise ValueError("renderer 'gt' needs settings.scene: a synthetic scene folder")
-            return views.GroundTruthRenderer(self.settings["scene"], self.dir("sfm") / "sparse")
+            return views.GroundTruthRenderer(self.settings["scene"], self.sfm.sparse)
         if self.settings["renderer"] != "splat":
             raise ValueError(f"unknown renderer {self.settings['renderer']!r} (splat, gt)")
         min_alpha = self.settings["views"].get("min_alpha", 0.5)
-        if blocks and self.uses_blocks and (self.dir("blocks") / "report.json").is_file():
+        if blocks and self.uses_blocks and (self.blocks.report).is_file():
             from services.views import BlockRenderer
 
-            return BlockRenderer(
-                self.dir("splat"), self.dir("blocks"), self.settings["splat_backend"], min_alpha
-            )
-        return views.SplatRenderer(self.dir("splat"), self.settings["splat_backend"], min_alpha)
+            return BlockRenderer(self.splat.dir, self.blocks.dir, self.settings["splat_backend"], min_alpha)
+        return views.SplatRenderer(self.splat.dir, self.settings["splat_backend"], min_alpha)
 
     def renderer_inputs(self, blocks: bool = True) -> list[Path]:
         if self.settings["renderer"] == "gt":
             return [Path(self.settings["scene"]) / "gt" / "scene.json"]
-        own = [self.dir("blocks") / "plan.json", self.dir("blocks") / "report.json"]
-        return [self.dir("splat") / "point_cloud.ply", *(own if blocks and self.uses_blocks else [])]
+        own = [self.blocks.plan, self.blocks.report]
+        return [self.splat.model, *(own if blocks and self.uses_blocks else [])]
 
 
 # -- fingerprints and markers --------------------------------------------------------------------
@@ -430,9 +526,9 @@ def _aerial_sfm(job: Job, report) -> dict:
     if not cams or "ground" not in cams:
         ground_camera_from_exif(job)  # fail before the SfM when the ground images' intrinsics are unknown
     report(0.0, "aerial structure from motion")
-    sfm.main(job.sfm_conf(), job.image_dir, job.dir("sfm"), job.pos, cams, image_set="aerial")
+    sfm.main(job.sfm_conf(), job.image_dir, job.sfm.dir, job.pos, cams, image_set="aerial")
     write_job_cameras(job)
-    rep = json.loads((job.dir("sfm") / "report.json").read_text())
+    rep = json.loads((job.sfm.report).read_text())
     return {"NRI": rep["NRI"], "num_points3D": rep["num_points3D"]}
 
 
@@ -445,7 +541,7 @@ def write_job_cameras(job: Job) -> Path:
     else:
         cams = {}
     if "aerial" not in cams:
-        model_cams, _ = read_model(job.dir("sfm") / "sparse")
+        model_cams, _ = read_model(job.sfm.sparse)
         cams["aerial"] = next(iter(model_cams.values()))
     if "ground" not in cams:
         cams["ground"] = ground_camera_from_exif(job)
@@ -466,15 +562,15 @@ def ground_camera_from_exif(job: Job):
 
 def _train_splat(job: Job, report) -> dict:
     if job.settings["renderer"] == "gt":
-        out = job.dir("splat")
+        out = job.splat.dir
         out.mkdir(parents=True, exist_ok=True)
         (out / "skipped.json").write_text(json.dumps({"reason": "renderer gt: no 3DGS model needed"}))
         return {"skipped": "renderer gt"}
     return train_splat(
         job.splat_conf(),
-        job.dir("sfm") / "sparse",
+        job.sfm.sparse,
         job.image_dir,
-        job.dir("splat"),
+        job.splat.dir,
         job.settings["splat_backend"],
         report,
     )
@@ -550,9 +646,9 @@ def _splat_all(job: Job, report) -> dict:
     step: the same trainer and conf as train_splat, whatever the renderer of the views."""
     return train_splat(
         job.splat_conf(),
-        job.dir("combined") / "sparse",
+        job.combined.sparse,
         job.image_dir,
-        job.dir("splat_all"),
+        job.splat_all.dir,
         job.settings["splat_backend"],
         report,
         prefix="",
@@ -567,11 +663,11 @@ def _plan_views(job: Job, report) -> dict:
     try:
         path = planning.main(
             job.viewpoint_conf(),
-            job.dir("sfm") / "sparse",
+            job.sfm.sparse,
             job.pos,
             job.cameras,
-            job.dir("sfm") / "georef.json",
-            job.dir("plan") / "views.json",
+            job.sfm.georef,
+            job.plan.views,
             depth_fn=rendering.depth_fn(r),
         )
     except planning.NoViews as e:  # the plan in place (if any) stays
@@ -583,9 +679,9 @@ def _render_views(job: Job, report) -> dict:
     from services.views import rendering
 
     r = job.renderer()
-    path = rendering.main(job.settings["views"], job.dir("plan") / "views.json", job.dir("views"), r, report)
+    path = rendering.main(job.settings["views"], job.plan.views, job.views.dir, r, report)
     doc = json.loads(path.read_text())
-    _prune(job.dir("views"), {f for v in doc["views"] for f in (v["image"], v["depth"])} | {"views.json"})
+    _prune(job.views.dir, {f for v in doc["views"] for f in (v["image"], v["depth"])} | {"views.json"})
     return {"num_views": len(doc["views"]), "renderer": doc["rendered"]["renderer"]}
 
 
@@ -598,7 +694,7 @@ def _prune(folder: Path, keep: set[str]) -> None:
 
 def view_names(job: Job) -> list[str]:
     """The rendered views (units of the match_views stage)."""
-    doc = json.loads((job.dir("views") / "views.json").read_text())
+    doc = json.loads((job.views.doc).read_text())
     return [v["name"] for v in doc["views"]]
 
 
@@ -607,12 +703,12 @@ def prepare_match_views(job: Job) -> Path:
     of every aerial image of the model when the reducer completes aerial tracks."""
     from services.matching import views as mv
 
-    doc = json.loads((job.dir("views") / "views.json").read_text())
+    doc = json.loads((job.views.doc).read_text())
     names = {n for v in doc["views"] for n in (*v.get("aerial", []), *v.get("ground", []))}
     if job.transfer_conf()["tracks"]["enabled"]:
         from services.colmap_model import read_model
 
-        names |= set(read_model(job.dir("sfm") / "sparse")[1])
+        names |= set(read_model(job.sfm.sparse)[1])
     return mv.prepare_features(job.match_conf(), job.image_dir, sorted(names), job.features_path)
 
 
@@ -620,17 +716,17 @@ def match_view_unit(job: Job, name: str, report=None) -> list[Path]:
     """One unit of the match_views fan-out: match view `name` (the features must be prepared)."""
     from services.matching import views as mv
 
-    doc = json.loads((job.dir("views") / "views.json").read_text())
+    doc = json.loads((job.views.doc).read_text())
     view = next(v for v in doc["views"] if v["name"] == name)
     return [
         mv.match_view(
-            job.match_conf(), view, job.dir("views"), job.image_dir, job.features_path, job.dir("matches")
+            job.match_conf(), view, job.views.dir, job.image_dir, job.features_path, job.matches.dir
         )
     ]
 
 
 def finish_match_views(job: Job, names: list[str]) -> dict:
-    _prune(job.dir("matches"), {f"{n}.h5" for n in names})
+    _prune(job.matches.dir, {f"{n}.h5" for n in names})
     return {"num_views": len(names)}
 
 
@@ -640,13 +736,13 @@ def prepare_blocks(job: Job) -> list[Path]:
     views and whole-scene model). Renderer "gt" plans none."""
     from services.splat import blocks
 
-    path = job.dir("blocks") / "plan.json"
+    path = job.blocks.plan
     conf = job.blocks_conf()
     if not job.uses_blocks:
         why = "renderer gt: no 3DGS model to refine" if job.settings["renderer"] == "gt" else "block_steps 0"
         return [blocks.write_plan({"conf": conf, "blocks": [], "skipped": why}, path)]
-    model = job.dir("splat") / "point_cloud.ply"
-    views_json = job.dir("plan") / "views.json"
+    model = job.splat.model
+    views_json = job.plan.views
     h = hashlib.sha256(json.dumps(conf, sort_keys=True).encode())
     for f in (views_json, model):
         h.update(hashlib.sha256(f.read_bytes()).digest())
@@ -661,26 +757,26 @@ def prepare_blocks(job: Job) -> list[Path]:
     from services.splat import load_model
 
     views = json.loads(views_json.read_text())["views"]
-    rec = pycolmap.Reconstruction(str(job.dir("sfm") / "sparse"))
+    rec = pycolmap.Reconstruction(str(job.sfm.sparse))
     plan = blocks.plan_blocks(conf, load_model(model), rec, views, job.settings["splat_backend"])
     return [blocks.write_plan({**plan, "inputs": inputs}, path)]
 
 
 def block_ids(job: Job) -> list[str]:
     """The planned blocks (units of the train_blocks stage)."""
-    return [b["id"] for b in json.loads((job.dir("blocks") / "plan.json").read_text())["blocks"]]
+    return [b["id"] for b in json.loads((job.blocks.plan).read_text())["blocks"]]
 
 
 def train_block_unit(job: Job, block: str, report=None) -> list[Path]:
     """One unit of the train_blocks fan-out: train block `block` (the plan must exist)."""
     from services.splat import blocks
 
-    out = job.dir("blocks")
+    out = job.blocks.dir
     blocks.train_block(
         out / "plan.json",
         block,
-        job.dir("splat") / "point_cloud.ply",
-        job.dir("sfm") / "sparse",
+        job.splat.model,
+        job.sfm.sparse,
         job.image_dir,
         out,
         job.settings["splat_backend"],
@@ -691,7 +787,7 @@ def train_block_unit(job: Job, block: str, report=None) -> list[Path]:
 
 def finish_blocks(job: Job, names: list[str]) -> dict:
     """blocks/report.json: each block's figures, and the reason of each block that was not trained."""
-    out = job.dir("blocks")
+    out = job.blocks.dir
     docs = [json.loads((out / n / "block.json").read_text()) for n in names]
     for p in out.iterdir():  # blocks of an earlier plan
         if p.is_dir() and p.name not in names:
@@ -726,19 +822,19 @@ def _reduce(job: Job, report) -> dict:
     from services import reduce
 
     report(0.0, "transferring matches")
-    files = sorted(job.dir("matches").glob("*.h5"))
+    files = sorted(job.matches.dir.glob("*.h5"))
     reduce.main(
         job.transfer_conf(),
-        job.dir("views") / "views.json",
+        job.views.doc,
         files,
-        job.dir("sfm") / "sparse",
+        job.sfm.sparse,
         job.pos,
         job.cameras,
-        job.dir("sfm") / "georef.json",
-        job.dir("transfer"),
+        job.sfm.georef,
+        job.transfer.dir,
         features=job.features_path,
     )
-    rep = json.loads((job.dir("transfer") / "report.json").read_text())
+    rep = json.loads((job.transfer.report).read_text())
     return {
         "putative": rep["putative"],
         "verified": rep["verified"],
@@ -753,8 +849,8 @@ def combined_reconstruction(job: Job, out_dir: Path, report=None) -> Path:
 
     return combined_sfm.main(
         job.combined_conf(),
-        job.dir("sfm"),
-        job.dir("transfer"),
+        job.sfm.dir,
+        job.transfer.dir,
         job.features_path,
         job.match_conf(),
         job.image_dir,
@@ -767,8 +863,8 @@ def combined_reconstruction(job: Job, out_dir: Path, report=None) -> Path:
 
 def _combined_sfm(job: Job, report) -> dict:
     _set_threads(job)
-    combined_reconstruction(job, job.dir("combined"), report)
-    rep = json.loads((job.dir("combined") / "report.json").read_text())
+    combined_reconstruction(job, job.combined.dir, report)
+    rep = json.loads((job.combined.report).read_text())
     keys = ("NRI", "num_registered", "num_images", "num_points3D")
     return {k: rep[k] for k in keys if k in rep}
 
@@ -794,9 +890,9 @@ REGISTRY: dict[str, StageDef] = {
             [_images(j, "aerial"), j.pos] + ([Path(j.inputs["cameras"])] if j.inputs.get("cameras") else [])
         ),
         lambda j: [
-            j.dir("sfm") / "sparse",
-            j.dir("sfm") / "georef.json",
-            j.dir("sfm") / "database.db",
+            j.sfm.sparse,
+            j.sfm.georef,
+            j.sfm.database,
             j.cameras,
         ],
         dirs=("sfm",),
@@ -817,12 +913,8 @@ REGISTRY: dict[str, StageDef] = {
             if j.settings["renderer"] == "gt"
             else {"splat": j.splat_conf(), "backend": j.settings["splat_backend"]}
         ),
-        lambda j: (
-            [j.dir("sfm") / "sparse"] + ([] if j.settings["renderer"] == "gt" else [_images(j, "aerial")])
-        ),
-        lambda j: [
-            j.dir("splat") / ("skipped.json" if j.settings["renderer"] == "gt" else "point_cloud.ply")
-        ],
+        lambda j: [j.sfm.sparse] + ([] if j.settings["renderer"] == "gt" else [_images(j, "aerial")]),
+        lambda j: [j.splat.skipped if j.settings["renderer"] == "gt" else j.splat.model],
         dirs=("splat",),
         artifacts=(("splat/point_cloud.ply", "splat"), ("splat/metrics.json", "metrics")),
     ),
@@ -831,13 +923,13 @@ REGISTRY: dict[str, StageDef] = {
         _plan_views,
         lambda j: {"viewpoints": j.viewpoint_conf(), "renderer": j.settings["renderer"]},
         lambda j: [
-            j.dir("sfm") / "sparse",
-            j.dir("sfm") / "georef.json",
+            j.sfm.sparse,
+            j.sfm.georef,
             j.pos,
             j.cameras,
             *j.renderer_inputs(blocks=False),
         ],
-        lambda j: [j.dir("plan") / "views.json"],
+        lambda j: [j.plan.views],
         dirs=("plan",),
         artifacts=(("plan/views.json", "views"),),
     ),
@@ -850,10 +942,10 @@ REGISTRY: dict[str, StageDef] = {
             "backend": j.settings["splat_backend"],
         },
         lambda j: (
-            [j.dir("plan") / "views.json", j.dir("sfm") / "sparse", *j.renderer_inputs(blocks=False)]
+            [j.plan.views, j.sfm.sparse, *j.renderer_inputs(blocks=False)]
             + ([] if j.settings["renderer"] == "gt" else [_images(j, "aerial")])
         ),
-        lambda j: [j.dir("blocks") / "plan.json", j.dir("blocks") / "report.json"],
+        lambda j: [j.blocks.plan, j.blocks.report],
         dirs=("blocks",),
         artifacts=(("blocks/report.json", "report"), ("blocks/plan.json", "blocks")),
         fanout=FanOut(
@@ -863,7 +955,7 @@ REGISTRY: dict[str, StageDef] = {
             marker=lambda n: f"blocks/{n}/block.json",
             queue=blocks_queue,
             finish=finish_blocks,
-            ready=lambda j: (j.dir("blocks") / "plan.json").is_file(),
+            ready=lambda j: (j.blocks.plan).is_file(),
         ),
     ),
     "render_views": StageDef(
@@ -875,8 +967,8 @@ REGISTRY: dict[str, StageDef] = {
             "backend": j.settings["splat_backend"],
             "blocks": j.uses_blocks,
         },
-        lambda j: [j.dir("plan") / "views.json", *j.renderer_inputs()],
-        lambda j: [j.dir("views") / "views.json"],
+        lambda j: [j.plan.views, *j.renderer_inputs()],
+        lambda j: [j.views.doc],
         dirs=("views",),
         artifacts=(("views/views.json", "views"), ("views/*.png", "view")),
     ),
@@ -884,8 +976,8 @@ REGISTRY: dict[str, StageDef] = {
         "match_views",
         run_fanout("match_views"),
         lambda j: {"matching": j.match_conf()},
-        lambda j: [j.dir("views") / "views.json", _images(j, "aerial"), _images(j, "ground")],
-        lambda j: [j.dir("matches"), j.features_path],
+        lambda j: [j.views.doc, _images(j, "aerial"), _images(j, "ground")],
+        lambda j: [j.matches.dir, j.features_path],
         dirs=("matches", "features"),
         fanout=FanOut(
             prepare=lambda j: [prepare_match_views(j)],
@@ -902,16 +994,14 @@ REGISTRY: dict[str, StageDef] = {
         _reduce,
         lambda j: {"transfer": j.transfer_conf()},
         lambda j: [
-            j.dir("views") / "views.json",
-            j.dir("matches"),
-            j.dir("sfm") / "sparse",
-            j.dir("sfm") / "georef.json",
+            j.views.doc,
+            j.matches.dir,
+            j.sfm.sparse,
+            j.sfm.georef,
             j.pos,
             j.cameras,
         ],
-        lambda j: [
-            j.dir("transfer") / f for f in ("matches.h5", "database.db", "ground_poses.json", "report.json")
-        ],
+        lambda j: [j.transfer.matches, j.transfer.database, j.transfer.ground_poses, j.transfer.report],
         dirs=("transfer",),
         artifacts=(
             ("transfer/matches.h5", "matches"),  # the API's /jobs/{id}/pairs reads the newest "matches"
@@ -925,16 +1015,16 @@ REGISTRY: dict[str, StageDef] = {
         _combined_sfm,
         lambda j: {"combined": j.combined_conf(), "matching": j.match_conf()},
         lambda j: [
-            j.dir("sfm") / "sparse",
-            j.dir("sfm") / "database.db",
-            j.dir("sfm") / "georef.json",
-            j.dir("transfer") / "matches.h5",
-            j.dir("transfer") / "ground_poses.json",
+            j.sfm.sparse,
+            j.sfm.database,
+            j.sfm.georef,
+            j.transfer.matches,
+            j.transfer.ground_poses,
             j.features_path,
             j.pos,
             j.cameras,
         ],
-        lambda j: [j.dir("combined") / "sparse", j.dir("combined") / "report.json"],
+        lambda j: [j.combined.sparse, j.combined.report],
         dirs=("combined",),
         extra=("features",),  # the combined SfM extends the matching feature cache
         artifacts=(
@@ -948,8 +1038,8 @@ REGISTRY: dict[str, StageDef] = {
         "splat_all",
         _splat_all,
         lambda j: {"splat": j.splat_conf(), "backend": j.settings["splat_backend"]},
-        lambda j: [j.dir("combined") / "sparse", _images(j, "aerial"), _images(j, "ground")],
-        lambda j: [j.dir("splat_all") / "point_cloud.ply", j.dir("splat_all") / "metrics.json"],
+        lambda j: [j.combined.sparse, _images(j, "aerial"), _images(j, "ground")],
+        lambda j: [j.splat_all.model, j.splat_all.metrics],
         dirs=("splat_all",),
         artifacts=(("splat_all/point_cloud.ply", "splat"), ("splat_all/metrics.json", "metrics")),
     ),
