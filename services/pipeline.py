@@ -21,7 +21,7 @@ JOB/stages/STAGE.json    done markers: input fingerprint, outputs, seconds, summ
 ```
 
 Every stage is a function of the job folder. A stage whose outputs exist and whose input fingerprint
-(a hash of its conf and of its input files' names, sizes and modification times) matches its marker is
+(a hash of its conf and of its input files' names, sizes and contents) matches its marker is
 skipped, so a rerun skips finished stages and resumes a failed one (3DGS training resumes from its last
 checkpoint, view matching skips views already matched). Stages made of independent units (`FanOut`:
 the blocks of train_blocks, the views of match_views) run them one by one here and one task each in the
@@ -413,10 +413,15 @@ def _files(path: Path) -> list[Path]:
     return out
 
 
+DIGESTS_FILE = ".digests.json"  # the job folder's content digests, by file stat (services.digests)
+
+
 def fingerprint(conf: Any, inputs: list[Path], root: Path | None = None) -> str:
-    """sha256 of the conf (JSON) and of the inputs' file names, sizes and modification times. Names under
-    `root` (the job folder) are taken relative to it, so that a job folder can be moved, or its stage
-    folders shared with another job through links."""
+    """sha256 of the conf (JSON) and of the inputs' file names, sizes and contents (sha256, cached by
+    file stat in ROOT/.digests.json). Names under `root` (the job folder) are taken relative to it, so
+    that a job folder can be moved, or its stage folders shared with another job through links; the
+    same files give the same fingerprint on every machine, whenever they were written."""
+    from services.digests import DigestCache
 
     def name(p: Path) -> str:
         if root is not None:
@@ -428,15 +433,16 @@ def fingerprint(conf: Any, inputs: list[Path], root: Path | None = None) -> str:
 
     h = hashlib.sha256()
     h.update(json.dumps(conf, sort_keys=True, default=str).encode())
-    for p in inputs:
-        p = Path(p)
-        h.update(f"#{name(p)}".encode())
-        for f in _files(p):
-            try:
-                st = f.stat()
-            except FileNotFoundError:
-                continue
-            h.update(f"{name(f)}:{st.st_size}:{st.st_mtime_ns}\n".encode())
+    with DigestCache(Path(root) / DIGESTS_FILE if root is not None else None) as dc:
+        for p in inputs:
+            p = Path(p)
+            h.update(f"#{name(p)}".encode())
+            for f in _files(p):
+                try:
+                    size, sha = f.stat().st_size, dc.digest(f)
+                except FileNotFoundError:
+                    continue
+                h.update(f"{name(f)}:{size}:{sha}\n".encode())
     return h.hexdigest()
 
 

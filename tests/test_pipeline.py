@@ -350,3 +350,31 @@ def test_gis_outputs_open_in_independent_readers(tiny_job):
     first = sorted(rec.points3D.items())[0][1]
     got = np.array([xi, yi, zi]) * np.array(scale) + np.array(origin)
     assert np.allclose(got, utm(first.xyz), atol=2e-3)
+
+
+def test_fingerprints_are_made_of_contents_not_times(tmp_path):
+    """A stage's fingerprint follows its inputs' bytes: a file touched (or downloaded anew elsewhere)
+    keeps it, a file rewritten with other bytes of the same size and time changes it."""
+    import os
+
+    root = tmp_path / "job"
+    f = root / "sfm" / "sparse" / "points3D.bin"
+    f.parent.mkdir(parents=True)
+    f.write_bytes(b"a" * 64)
+    fp = pipeline.fingerprint({"k": 1}, [root / "sfm"], root)
+    st = f.stat()
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 10**12))
+    assert pipeline.fingerprint({"k": 1}, [root / "sfm"], root) == fp
+    f.write_bytes(b"b" * 64)
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))  # same size, same time, other bytes
+    assert pipeline.fingerprint({"k": 1}, [root / "sfm"], root) != fp
+    assert pipeline.fingerprint({"k": 2}, [root / "sfm"], root) != pipeline.fingerprint(
+        {"k": 1}, [root / "sfm"], root
+    )
+    # a copy of the job folder elsewhere (another worker) has the same fingerprint
+    other = tmp_path / "elsewhere"
+    (other / "sfm" / "sparse").mkdir(parents=True)
+    (other / "sfm" / "sparse" / "points3D.bin").write_bytes(b"b" * 64)
+    assert pipeline.fingerprint({"k": 1}, [other / "sfm"], other) == pipeline.fingerprint(
+        {"k": 1}, [root / "sfm"], root
+    )

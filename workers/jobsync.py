@@ -4,7 +4,7 @@ Layout in storage (`P` = shared.storage.keys.job_prefix(tenant, project, job)):
 
     P/files/REL          a file of the job folder (REL: `sfm/sparse/cameras.bin`, `stages/aerial_sfm.json`)
     P/manifests/UNIT.json  what one push (a stage, one view of match_views) uploaded:
-                         {"unit", "created_ns", "files": {REL: [size, mtime_ns]}}
+                         {"unit", "created_ns", "files": {REL: [size, sha256]}}
 
 and on the worker (`ROOT` = work_dir/JOB_ID):
 
@@ -12,21 +12,20 @@ and on the worker (`ROOT` = work_dir/JOB_ID):
     ROOT/inputs/pos.csv                the project's POS rows (services.pos.write_pos_csv)
     ROOT/inputs/cameras.json           the project's cameras.json, when storage holds one (CAMERAS_FILE)
     ROOT/...                           the services.pipeline job folder
-    ROOT/.sync.json                    {REL: [size, mtime_ns]} of the files this folder shares with storage
+    ROOT/.sync.json                    {REL: [size, sha256]} of the files this folder shares with storage
+    ROOT/.digests.json                 content digests by file stat (services.digests), shared with the
+                                       pipeline's fingerprints
 
-The pipeline skips a stage whose input fingerprint (names, sizes and MTIMES of its input files) matches
-its marker. Files therefore keep their modification times across workers: `push` records them in the
-manifest and `pull` restores them; inputs get times derived from their content (an image's sha256), so
-that every worker computes the same fingerprints.
+The pipeline skips a stage whose input fingerprint (names, sizes and contents of its input files)
+matches its marker, so every worker that holds the same files computes the same fingerprints, whenever
+it downloaded them. A file is transferred only when its content differs (size and sha256).
 """
 
 from __future__ import annotations
 
 import fnmatch
-import hashlib
 import json
 import logging
-import os
 import shutil
 import time
 from collections.abc import Iterable, Iterator
@@ -38,6 +37,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
+from services.digests import DigestCache
 from shared.db import crud
 from shared.db.models import Job as JobRow
 from shared.job_options import JobOptions
@@ -55,7 +55,6 @@ CAMERAS_FILE = "cameras.json"  # optional object at project_prefix(...)/cameras.
 # (fnmatch patterns: a path at or under one is local)
 LOCAL_ONLY = (INPUTS, "images", "job.json", SYNC_FILE, "splat/ckpts", "blocks/*/ckpts")
 _TEMP_SUFFIXES = (".tmp", "-wal", "-shm", "-journal")
-_STABLE_EPOCH_S = 946_684_800  # 2000-01-01: inputs get a modification time derived from their content
 _THREADS = 8
 
 CONTENT_TYPES = {
@@ -89,18 +88,16 @@ def files_key(prefix: str, rel: str) -> str:
     return f"{prefix}{FILES_DIR}{rel}"
 
 
-def stable_mtime_ns(hexdigest: str) -> int:
-    """A modification time (ns) that is a function of a content hash: the same on every worker."""
-    return (_STABLE_EPOCH_S + int(hexdigest[:8], 16) % 300_000_000) * 1_000_000_000
+def digests(root: Path) -> DigestCache:
+    """The job folder's content digests (ROOT/.digests.json, also the pipeline's)."""
+    from services.pipeline import DIGESTS_FILE
+
+    return DigestCache(Path(root) / DIGESTS_FILE)
 
 
-def _stat(path: Path) -> list[int]:
-    st = path.stat()
-    return [int(st.st_size), int(st.st_mtime_ns)]
-
-
-def _set_mtime(path: Path, mtime_ns: int) -> None:
-    os.utime(path, ns=(mtime_ns, mtime_ns))
+def _stat(path: Path, dc: DigestCache) -> list[Any]:
+    """[size, sha256] of a file: what the manifests and .sync.json compare."""
+    return [int(path.stat().st_size), dc.digest(path)]
 
 
 @contextmanager
@@ -120,15 +117,15 @@ def locked(root: str | Path) -> Iterator[None]:
 
 
 # -- local sync state ----------------------------------------------------------------------------
-def read_sync(root: Path) -> dict[str, list[int]]:
+def read_sync(root: Path) -> dict[str, list[Any]]:
     try:
         doc = json.loads((root / SYNC_FILE).read_text())
-        return {k: [int(v[0]), int(v[1])] for k, v in doc.items()}
+        return {k: [int(v[0]), v[1]] for k, v in doc.items()}
     except (FileNotFoundError, ValueError, TypeError, IndexError):
         return {}
 
 
-def write_sync(root: Path, sync: dict[str, list[int]]) -> None:
+def write_sync(root: Path, sync: dict[str, list[Any]]) -> None:
     root.mkdir(parents=True, exist_ok=True)
     tmp = root / f"{SYNC_FILE}.tmp"
     tmp.write_text(json.dumps(dict(sorted(sync.items()))))
@@ -158,15 +155,12 @@ def _pos_records(session: Session, project_id: str, names: set[str]) -> list:
 
 
 def _write_if_changed(path: Path, data: bytes) -> None:
-    """Write data unless the file holds it already; the mtime follows the content."""
-    digest = hashlib.sha256(data).hexdigest()
+    """Write data unless the file holds it already (left untouched then)."""
     if not (path.is_file() and path.read_bytes() == data):
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.tmp")
         tmp.write_bytes(data)
         tmp.replace(path)
-    if path.stat().st_mtime_ns != stable_mtime_ns(digest):
-        _set_mtime(path, stable_mtime_ns(digest))
 
 
 class InputsChanged(RuntimeError):
@@ -181,7 +175,7 @@ def materialize(
     settings: dict | None = None,
 ) -> Any:
     """The job's pipeline folder on this worker: images downloaded into ROOT/inputs (skipped when present
-    with the same size and content time), the POS rows as ROOT/inputs/pos.csv, the project's cameras.json
+    with the same size and sha256), the POS rows as ROOT/inputs/pos.csv, the project's cameras.json
     when storage has one, and the services.pipeline.Job created (or refreshed) with the row's options."""
     from services import pipeline
     from services.pos import write_pos_csv
@@ -201,19 +195,13 @@ def materialize(
     todo = []
     for s in ("aerial", "ground"):
         (inputs / s).mkdir(parents=True, exist_ok=True)
-    for im in images:
-        path = inputs / im.name
-        want = stable_mtime_ns(im.sha256)
-        if path.is_file() and _stat(path) == [int(im.size_bytes), want]:
-            continue
-        todo.append((im.storage_key, path, want))
-
-    def fetch(item: tuple[str, Path, int]) -> None:
-        key, path, mtime = item
-        storage.download(key, path)
-        _set_mtime(path, mtime)
-
-    _parallel(fetch, todo)
+    with digests(root) as dc:
+        for im in images:
+            path = inputs / im.name
+            if path.is_file() and _stat(path, dc) == [int(im.size_bytes), im.sha256]:
+                continue
+            todo.append((im.storage_key, path))
+    _parallel(lambda item: storage.download(*item), todo)
     for s in ("aerial", "ground"):  # images removed from the project since the last run
         for p in (inputs / s).iterdir():
             if p.is_file() and f"{s}/{p.name}" not in names:
@@ -271,26 +259,26 @@ def _parallel(fn: Any, items: list) -> None:
             pass
 
 
-def read_manifests(storage: Storage, prefix: str) -> dict[str, list[int]]:
-    """{REL: [size, mtime_ns]} merged over every manifest under the prefix, the newest winning."""
+def read_manifests(storage: Storage, prefix: str) -> dict[str, list[Any]]:
+    """{REL: [size, sha256]} merged over every manifest under the prefix, the newest winning."""
     docs = []
     for key in storage.list(f"{prefix}{MANIFESTS_DIR}"):
         try:
             docs.append(json.loads(storage.get_bytes(key)))
         except (StorageKeyError, ValueError):
             continue  # deleted meanwhile, or not ours
-    merged: dict[str, list[int]] = {}
+    merged: dict[str, list[Any]] = {}
     for doc in sorted(docs, key=lambda d: int(d.get("created_ns", 0))):
         for rel, v in (doc.get("files") or {}).items():
-            merged[rel] = [int(v[0]), int(v[1])]
+            merged[rel] = [int(v[0]), v[1]]
     return merged
 
 
 def pull(storage: Storage, prefix: str, root: str | Path) -> SyncStats:
     """Bring the job folder up to date with storage: download every object under P/files/ that is
-    missing here or differs (size, or modification time where a manifest gives one), restore the
-    manifest's modification times, and delete local files that came from storage earlier but are gone
-    there now. Files that never were in storage (local scratch) are left alone."""
+    missing here or differs (size, and content where a manifest gives its sha256), and delete local
+    files that came from storage earlier but are gone there now. Files that never were in storage
+    (local scratch) are left alone."""
     t0 = time.perf_counter()
     root = Path(root)
     stats = SyncStats()
@@ -298,37 +286,36 @@ def pull(storage: Storage, prefix: str, root: str | Path) -> SyncStats:
     keys = storage.list(fprefix)
     expected = read_manifests(storage, prefix)
     old = read_sync(root)
-    sync: dict[str, list[int]] = {}
+    sync: dict[str, list[Any]] = {}
     todo = []
-    for key in keys:
-        rel = key[len(fprefix) :]
-        path = root / rel
-        want = expected.get(rel)
-        if want is None:  # pushed without a manifest (interrupted push): compare sizes only
-            size = storage.stat(key).size
-            if path.is_file() and path.stat().st_size == size:
-                sync[rel] = _stat(path)
+    with digests(root) as dc:
+        for key in keys:
+            rel = key[len(fprefix) :]
+            path = root / rel
+            want = expected.get(rel)
+            if want is None:  # pushed without a manifest (interrupted push): compare sizes only
+                size = storage.stat(key).size
+                if path.is_file() and path.stat().st_size == size:
+                    sync[rel] = _stat(path, dc)
+                    stats.skipped += 1
+                    continue
+            elif path.is_file() and _stat(path, dc) == want:
+                sync[rel] = want
                 stats.skipped += 1
                 continue
-        elif path.is_file() and _stat(path) == want:
-            sync[rel] = want
-            stats.skipped += 1
-            continue
-        todo.append((key, rel, want))
+            todo.append((key, rel))
 
-    def fetch(item: tuple[str, str, list[int] | None]) -> None:
-        key, rel, want = item
-        path = root / rel
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)
-        storage.download(key, path)
-        if want is not None and path.stat().st_size == want[0]:
-            _set_mtime(path, want[1])
+        def fetch(item: tuple[str, str]) -> None:
+            key, rel = item
+            path = root / rel
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            storage.download(key, path)
 
-    _parallel(fetch, todo)
-    for _, rel, _ in todo:
-        sync[rel] = _stat(root / rel)
-        stats.transferred.append(rel)
+        _parallel(fetch, todo)
+        for _, rel in todo:
+            sync[rel] = _stat(root / rel, dc)
+            stats.transferred.append(rel)
     for rel in sorted(set(old) - set(sync)):  # gone from storage since we last saw it
         p = root / rel
         if p.is_file():
@@ -375,7 +362,7 @@ def push(
     mirror: Iterable[str] = (),
 ) -> SyncStats:
     """Upload the files at or under paths (skipping those storage already holds unchanged, per
-    .sync.json), then the unit's manifest {REL: [size, mtime_ns]} (merged with the unit's previous one).
+    .sync.json), then the unit's manifest {REL: [size, sha256]} (merged with the unit's previous one).
     For each folder in `mirror` (relative to root), objects under it that no longer exist here are
     deleted from storage (e.g. the matches of views no longer planned)."""
     t0 = time.perf_counter()
@@ -383,7 +370,8 @@ def push(
     stats = SyncStats()
     files = local_files(root, paths)
     sync = read_sync(root)
-    current = {rel: _stat(p) for rel, p in files.items()}
+    with digests(root) as dc:
+        current = {rel: _stat(p, dc) for rel, p in files.items()}
     todo = [rel for rel, st in current.items() if sync.get(rel) != st]
     stats.skipped = len(current) - len(todo)
 

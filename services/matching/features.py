@@ -5,7 +5,7 @@ Keypoints are stored at the full resolution of the image file in the COLMAP pixe
 
 ```
 / (attrs: conf=JSON of the feature conf)
-/<image name>/            attrs: width, height, source_size, source_mtime_ns
+/<image name>/            attrs: width, height, source_size, source_sha256 (of the image file)
 /<image name>/keypoints   float32 (N, 2)
 /<image name>/descriptors float16 or float32 (N, D)
 /<image name>/scores      float32 (N,)
@@ -29,6 +29,7 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
+from services.digests import DigestCache
 from shared.images import list_images, read_image
 from shared.logging import stage
 
@@ -152,17 +153,22 @@ def _conf_json(conf: dict[str, Any]) -> str:
     return json.dumps(conf, sort_keys=True)
 
 
-def _stamp(path: Path) -> tuple[int, int]:
-    st = path.stat()
-    return int(st.st_size), int(st.st_mtime_ns)
+def _stamp(path: Path, digests: DigestCache) -> tuple[int, str]:
+    """(size, sha256) of an image: what its cached features were extracted from."""
+    return int(path.stat().st_size), digests.digest(path)
 
 
-def _is_cached(h5: h5py.File, name: str, stamp: tuple[int, int]) -> bool:
+def image_digests(feature_path: Path) -> DigestCache:
+    """The images' content digests, cached beside the feature file."""
+    return DigestCache(feature_path.parent / f".{feature_path.stem}.digests.json")
+
+
+def _is_cached(h5: h5py.File, name: str, stamp: tuple[int, str]) -> bool:
     if name not in h5 or not isinstance(h5[name], h5py.Group):
         return False
     g = h5[name]
     complete = all(k in g for k in ("keypoints", "descriptors", "scores"))
-    same = (int(g.attrs.get("source_size", -1)), int(g.attrs.get("source_mtime_ns", -1))) == stamp
+    same = (int(g.attrs.get("source_size", -1)), str(g.attrs.get("source_sha256", ""))) == stamp
     return complete and same
 
 
@@ -175,7 +181,7 @@ def _write(h5: h5py.File, name: str, feats: dict[str, np.ndarray], size, stamp, 
             v = v.astype(np.float16)
         g.create_dataset(k, data=v)
     # attrs last: a group without them is seen as incomplete and re-extracted
-    g.attrs.update(width=int(size[0]), height=int(size[1]), source_size=stamp[0], source_mtime_ns=stamp[1])
+    g.attrs.update(width=int(size[0]), height=int(size[1]), source_size=stamp[0], source_sha256=stamp[1])
 
 
 def _open_cache(conf: dict[str, Any], feature_path: Path) -> h5py.File:
@@ -200,7 +206,8 @@ def _all_cached(conf: dict[str, Any], feature_path: Path, image_dir: Path, names
         if h5.attrs.get("conf") != _conf_json(conf):
             return False
         paths = {n: image_dir / n for n in names}
-        return all(p.is_file() and _is_cached(h5, n, _stamp(p)) for n, p in paths.items())
+        with image_digests(feature_path) as dg:
+            return all(p.is_file() and _is_cached(h5, n, _stamp(p, dg)) for n, p in paths.items())
 
 
 def main(
@@ -221,11 +228,12 @@ def main(
             logger.info("%d images, all cached -> %s", len(set(names)), feature_path)
             return feature_path
         h5 = _open_cache(conf, feature_path)
+        dg = image_digests(feature_path)
         try:
             todo = []
             for n in dict.fromkeys(names):
                 path = image_dir / n  # a missing image fails below, in read_image, with a clear error
-                if overwrite or not path.is_file() or not _is_cached(h5, n, _stamp(path)):
+                if overwrite or not path.is_file() or not _is_cached(h5, n, _stamp(path, dg)):
                     todo.append(n)
             n_all = len(set(names))
             logger.info(
@@ -236,13 +244,14 @@ def main(
                 image = read_image(image_dir / n, grayscale=conf["preprocessing"].get("grayscale", False))
                 feats = extract(conf, image)
                 size = (image.shape[1], image.shape[0])
-                _write(h5, n, feats, size, _stamp(image_dir / n), conf.get("as_half", True))
+                _write(h5, n, feats, size, _stamp(image_dir / n, dg), conf.get("as_half", True))
                 h5.flush()
             if todo:
                 dt = time.perf_counter() - t0
                 logger.info("extracted %d images in %.1f s (%.2f s/image)", len(todo), dt, dt / len(todo))
         finally:
             h5.close()
+            dg.save()
     return feature_path
 
 

@@ -100,7 +100,7 @@ def prepare_features(
     return features_mod.main(feature_conf(conf), image_dir, sorted(set(names)), feature_path)
 
 
-def _fingerprint(conf: dict, view: dict, render_path: Path, image_dir: Path) -> str:
+def _fingerprint(conf: dict, view: dict, render_path: Path, image_dir: Path, feature_path: Path) -> str:
     h = hashlib.sha256()
     h.update(json.dumps(conf, sort_keys=True).encode())
     h.update(
@@ -109,10 +109,10 @@ def _fingerprint(conf: dict, view: dict, render_path: Path, image_dir: Path) -> 
         ).encode()
     )
     h.update(hashlib.sha256(render_path.read_bytes()).digest())  # the render's content
-    for name in (*view.get("aerial", []), *view.get("ground", [])):  # the images (their cached features)
-        p = image_dir / name
-        st = p.stat() if p.exists() else None
-        h.update(f"{name}:{st.st_size if st else -1}:{st.st_mtime_ns if st else -1}".encode())
+    with features_mod.image_digests(feature_path) as dg:  # the images (their cached features)
+        for name in (*view.get("aerial", []), *view.get("ground", [])):
+            p = image_dir / name
+            h.update(f"{name}:{dg.digest(p) if p.exists() else -1}".encode())
     return h.hexdigest()[:32]
 
 
@@ -160,7 +160,7 @@ def match_view(
     name = view["name"]
     render_path = views_dir / view.get("image", f"{name}.png")
     out = out_dir / f"{name}.h5"
-    fp = _fingerprint(conf, view, render_path, image_dir)
+    fp = _fingerprint(conf, view, render_path, image_dir, feature_path)
     if not overwrite and out.is_file() and _read_fingerprint(out) == fp:
         logger.debug("%s: up to date", out)
         return out
