@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from cli.run import BaselinesBeside, direct_baselines
+from cli.demo import BaselinesBeside, direct_baselines
 from services.matching import features as features_mod
 from services.matching.views import feature_conf
 from shared.images import list_images

@@ -1,0 +1,341 @@
+"""The demo (`midview demo`): a synthetic survey, the pipeline in-process, the direct baselines in a
+process beside it, one table and report.html (the dashboard's page of the job, static). The command
+itself (cli/run.py) only parses its options and calls `run_demo`."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+logger = logging.getLogger("midview.cli.demo")
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_TEXTURES = ROOT.parent / "shared" / "data" / "lund_street"
+
+# demo settings: chosen so that the `small` preset finishes within 20 minutes on 2 CPU cores
+DEMO_OPTIONS = {
+    "sfm_features": "sift",
+    "matcher": "aliked-lightglue",
+    "view_planner": "paper",  # the best single planner (bench/method.py); "both" is better, twice the views
+    "views_per_ground_image": 2,
+    "splat_steps": 3000,  # 1000 steps: GT-correct 0.6 per pair, 3000: 3.4 (the 3DGS is what limits it)
+    "splat_max_width": 400,
+    "max_keypoints": 1024,
+    "seed": 0,
+}
+
+# seconds of 3DGS training at most (services.splat `time_budget_s`): 3000 steps took 8.5-9.5 min on most
+# sessions' machines (the baselines' process beside it), 14-17 min on two slower ones, where the demo ran
+# 24-30 min; within the budget the run takes fewer steps
+DEMO_SPLAT_BUDGET_S = 600.0
+
+DEMO_SETTINGS = {
+    "torch_threads": 1,
+    # CPU training: cap the model size. 3000 steps at 400 px on small-walk (bench/splat_views.py, 20 views
+    # at 1024 px): 120k Gaussians 1.48x the matchable render-truth matches of the bench's default recipe,
+    # 60k 1.26x, in 490 s against 412 s of training
+    "splat": {"strategy": {"max_gaussians": 120_000}},
+    # a quicker aerial SfM: SIFT at 1024 px, spatial matching of 12 neighbours
+    "sfm": {
+        "features": {"max_image_size": 1024, "max_num_features": 4096},
+        "matching": {"exhaustive_max": 0, "num_neighbors": 12},
+    },
+}
+
+
+def baseline_reconstruction(job, label: str, match_file: Path, match_conf: dict, out_dir: Path) -> Path:
+    """The combined reconstruction with a direct baseline's matches, by the same procedure as midview's:
+    PnP seeds from its matches (aerial keypoints lifted with the aerial model's points), then
+    services.sfm.combined. Returns the model folder."""
+    from services import reduce
+    from services.matching.views import feature_conf
+    from services.sfm import combined as combined_sfm
+
+    tdir = out_dir / f"{match_file.stem}-pnp"
+    reduce.localize_direct(
+        job.transfer_conf(),
+        match_file,
+        job.sfm.sparse,
+        job.pos,
+        job.cameras,
+        job.sfm.georef,
+        tdir,
+    )
+    fpath = out_dir / "features" / f"{feature_conf(match_conf)['output']}.h5"
+    return combined_sfm.main(
+        job.combined_conf(),
+        job.sfm.dir,
+        tdir,
+        fpath,
+        match_conf,
+        job.image_dir,
+        job.pos,
+        job.cameras,
+        out_dir / f"{match_file.stem}-combined",
+    )
+
+
+def direct_baselines(
+    scene: Path,
+    out_dir: Path,
+    aliked_features: dict,
+    sift_conf: dict | None = None,
+    reuse_features: Path | None = None,
+) -> dict[str, tuple]:
+    """Direct SIFT and ALIKED+LightGlue (features `aliked_features`, midview's) on the POS pairs.
+    `reuse_features`: a feature file of that conf (the job's cache) to start from. Returns {label: (match
+    file, matching conf)}."""
+    from services.matching import direct
+    from services.matching import pairs as pairs_mod
+    from shared.images import list_images
+
+    names = list_images(scene / "images")
+    pairs = pairs_mod.get_pairs(pairs_mod.confs["pos"], names, scene / "pos.csv", scene / "cameras.json")
+    out = {}
+    sift = {**direct.confs["sift"], "name": "direct-sift", **(sift_conf or {})}
+    out["direct SIFT"] = (
+        direct.main(sift, scene, pairs, out_dir / "direct-sift.h5", out_dir / "features"),
+        sift,
+    )
+    alg = {
+        **direct.confs["aliked-lightglue"],
+        "name": "direct-aliked-lightglue",
+        "features": aliked_features,
+    }
+    # a copy of the job's feature cache: its features are reused, the job's cache stays as it was
+    cache = out_dir / "features"
+    cache.mkdir(parents=True, exist_ok=True)
+    if reuse_features is not None and reuse_features.exists() and not (cache / reuse_features.name).exists():
+        shutil.copy2(reuse_features, cache / reuse_features.name)
+    out["direct ALIKED+LightGlue"] = (direct.main(alg, scene, pairs, out_dir / "direct-alg.h5", cache), alg)
+    return out
+
+
+def _baselines_process(scene: str, out_dir: str, aliked_features: dict, sift_conf: dict) -> None:
+    """direct_baselines in a child process beside the pipeline: one torch thread, its output (logs,
+    progress bars, COLMAP's) in OUT_DIR/baselines.log, its result in OUT_DIR/baselines.json."""
+    import os
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    log_fd = os.open(out / "baselines.log", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    os.dup2(log_fd, 1)
+    os.dup2(log_fd, 2)
+    from shared.logging import setup_logging
+
+    setup_logging("INFO")
+    import torch
+
+    torch.set_num_threads(1)
+    from services.matching import features as features_mod
+    from shared.images import list_images
+
+    t0 = time.perf_counter()
+    # midview's features first: the demo hands them to the job (BaselinesBeside.share_features)
+    features_mod.main(
+        aliked_features,
+        Path(scene) / "images",
+        list_images(Path(scene) / "images"),
+        out / "features" / f"{aliked_features['output']}.h5",
+    )
+    (out / "features" / "shared.done").touch()
+    found = direct_baselines(Path(scene), out, aliked_features, sift_conf)
+    result = {"found": {k: [str(p), c] for k, (p, c) in found.items()}, "seconds": time.perf_counter() - t0}
+    (out / "baselines.json").write_text(json.dumps(result))
+
+
+class BaselinesBeside:
+    """The direct baselines in a spawned child process (no forked torch or numba state) while the pipeline
+    runs: on 2 cores the pipeline leaves about half a core idle (single-threaded torch matching, the
+    incremental mapper). `wait()` for the result; `stop()` kills the child if it still runs (SIGKILL:
+    COLMAP's signal handler can deadlock on SIGTERM). The child extracts midview's features (ALIKED, the
+    job's conf) first, which `share_features` hands to the job."""
+
+    def __init__(self, scene: Path, out_dir: Path, aliked_features: dict, sift_conf: dict):
+        import multiprocessing
+
+        self.out_dir = Path(out_dir)
+        self.log = self.out_dir / "baselines.log"
+        self.features = self.out_dir / "features" / f"{aliked_features['output']}.h5"
+        (self.out_dir / "baselines.json").unlink(missing_ok=True)
+        (self.out_dir / "features" / "shared.done").unlink(missing_ok=True)
+        self.proc = multiprocessing.get_context("spawn").Process(
+            target=_baselines_process, args=(str(scene), str(out_dir), aliked_features, sift_conf)
+        )
+        self.proc.start()
+
+    def wait(self, timeout: float | None = None) -> tuple[dict[str, tuple], float]:
+        """{label: (match file, matching conf)} as direct_baselines returns, and the child's seconds."""
+        self.proc.join(timeout)
+        if self.proc.is_alive():
+            raise TimeoutError(f"the direct baselines still run after {timeout} s (log: {self.log})")
+        result = self.out_dir / "baselines.json"
+        if self.proc.exitcode != 0 or not result.exists():
+            code = self.proc.exitcode
+            raise RuntimeError(f"the direct baselines failed (exit code {code}); see {self.log}")
+        r = json.loads(result.read_text())
+        return {k: (Path(p), c) for k, (p, c) in r["found"].items()}, float(r["seconds"])
+
+    def share_features(self, dst: Path) -> bool:
+        """Copy the child's ALIKED features to `dst` (the job's feature cache) if it has finished them and
+        `dst` does not exist; the job extracts whatever they lack. True if copied."""
+        if dst.exists() or not (self.out_dir / "features" / "shared.done").exists():
+            return False
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dst.with_suffix(".part")
+        shutil.copy2(self.features, tmp)
+        tmp.replace(dst)
+        return True
+
+    def stop(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join()
+
+
+def _demo_sift_conf() -> dict:
+    """SIFT of the direct baseline for the demo: 4096 features at 1024 px (the bench uses 8192 at 1600)."""
+    from services.matching import features as features_mod
+
+    c = json.loads(json.dumps(features_mod.confs["sift"]))
+    c["model"]["max_num_features"] = 4096
+    c["preprocessing"]["resize_max"] = 1024
+    c["output"] = "feats-sift-r1024-k4096"
+    return c
+
+
+def synthesize(out: Path, preset: str, seed: int, textures: Path | None, supersample: int, console) -> Path:
+    """OUT/scene: the synthetic survey of `preset` (kept when complete)."""
+    from services import synth
+
+    scene = out / "scene"
+    if not synth.scene_complete(scene):
+        console.print(f"rendering the {preset} survey into {scene} (textures: {textures})")
+        synth.main(
+            synth.confs[preset],
+            scene,
+            seed=seed,
+            textures_dir=textures,
+            supersample=supersample,
+            overwrite=True,
+        )
+    return scene
+
+
+def run_with_baselines(
+    job, scene: Path, out: Path, baselines: bool, beside: bool, run_job: Callable, console, timings: dict
+) -> dict[str, tuple]:
+    """The pipeline, and the direct baselines beside it (a child process, which also extracts midview's
+    features for the job) or after it; {label: (match file, matching conf)} of the baselines."""
+    from services import pipeline
+    from services.matching.views import feature_conf
+
+    aliked = feature_conf(job.match_conf())
+    sift = {"features": _demo_sift_conf()}
+    child = None
+    if baselines and beside:
+        child = BaselinesBeside(scene, out / "baselines", aliked, sift)
+        console.print(f"direct baselines beside the pipeline (log: {child.log})")
+    found: dict[str, tuple] = {}
+    try:
+        t0 = time.perf_counter()
+        todo = list(job.options.stages)
+        cut = todo.index("match_views") if child is not None and "match_views" in todo else len(todo)
+        results = run_job(job, stages=todo[:cut])
+        if cut < len(todo):
+            if child.share_features(job.features_path):
+                console.print("midview's features: taken from the baselines' process")
+            results.update(run_job(job, stages=todo[cut:]))
+        timings["pipeline"] = time.perf_counter() - t0
+        for s, r in results.items():
+            timings[s] = float(r.get("seconds", 0.0))
+        if baselines:
+            t0 = time.perf_counter()
+            with console.status("direct baselines"):
+                if child is not None:
+                    found, timings["baselines_process"] = child.wait()
+                else:
+                    pipeline._set_threads(job)
+                    found = direct_baselines(scene, out / "baselines", aliked, sift, job.features_path)
+            timings["baselines"] = time.perf_counter() - t0  # after the pipeline
+    finally:
+        if child is not None:  # done, or the pipeline failed: stop the child either way
+            child.stop()
+    return found
+
+
+def reconstruct_baselines(job, found: dict[str, tuple], scene: Path, out: Path, console) -> dict[str, dict]:
+    """Each baseline's combined reconstruction evaluated against the truth ({label: evaluate_sfm}); a
+    baseline that cannot reconstruct has none."""
+    from services.evaluation import evaluate_sfm
+
+    sfm_evals = {}
+    for label, (path, conf) in found.items():
+        with console.status(f"reconstruction with the {label} matches"):
+            try:
+                model = baseline_reconstruction(job, label, path, conf, out / "baselines")
+                sfm_evals[label] = evaluate_sfm(scene, model, out / "eval" / f"{path.stem}-combined")
+            except Exception as e:  # noqa: BLE001 - a baseline that cannot reconstruct reports no NRI
+                logger.warning("no reconstruction with the %s matches: %s", label, e)
+    return sfm_evals
+
+
+def run_demo(
+    out: Path,
+    preset: str,
+    seed: int,
+    textures: Path | None,
+    renderer: str,
+    options: dict,
+    supersample: int,
+    baselines: bool,
+    baseline_sfm: bool,
+    beside: bool,
+    run_job: Callable,
+) -> Path:
+    """The demo (see the module docstring) with the job options `options`; returns OUT/report.html.
+    `run_job(job, stages)` runs the pipeline's stages (with the command's progress display)."""
+    from rich.console import Console
+
+    from cli.demo_report import print_table, write_report_html
+    from services import pipeline
+    from services.evaluation import evaluate_matches, evaluate_sfm
+
+    console = Console(width=None if sys.stdout.isatty() else 150)
+    t_start = time.perf_counter()
+    tex = textures or (DEFAULT_TEXTURES if DEFAULT_TEXTURES.is_dir() else None)
+    timings: dict[str, float] = {}
+    scene = synthesize(out, preset, seed, tex, supersample, console)
+    timings["synth"] = time.perf_counter() - t_start
+    settings = {**DEMO_SETTINGS, "renderer": renderer, "scene": str(scene) if renderer == "gt" else None}
+    images = scene / "images"
+    job = pipeline.Job.create(
+        out / "job", images / "aerial", images / "ground", scene / "pos.csv", scene / "cameras.json",
+        options=options, settings=settings,
+    )  # fmt: skip
+    found = run_with_baselines(job, scene, out, baselines, beside, run_job, console, timings)
+    files: dict[str, Path] = {k: v[0] for k, v in found.items()}
+    sfm_evals: dict[str, dict] = {}
+    if baseline_sfm and found:
+        t0 = time.perf_counter()
+        sfm_evals = reconstruct_baselines(job, found, scene, out, console)
+        timings["baselines_sfm"] = time.perf_counter() - t0
+    files["midview"] = job.transfer.matches
+    t0 = time.perf_counter()
+    rows = []
+    for label, path in files.items():
+        s = evaluate_matches(scene, path, out / "eval" / path.stem)
+        s["method"] = label
+        rows.append(s)
+    sfm_evals["midview"] = evaluate_sfm(scene, job.combined.sparse, out / "eval" / "combined")
+    timings["evaluation"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    print_table(rows, sfm_evals, console)
+    report = write_report_html(out, scene, files, rows, sfm_evals, timings, job)
+    console.print(f"report: {report}  (total {timings['total'] / 60:.1f} min)")
+    return report
