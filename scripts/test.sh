@@ -6,6 +6,7 @@ bash scripts/setup.sh
 VENV=${MIDVIEW_VENV:-.venv}
 "$VENV/bin/ruff" check .
 "$VENV/bin/lint-imports"  # the architecture contracts of pyproject.toml
+"$VENV/bin/deptry" .  # no missing, unused or transitive-only dependency
 # the compose file is validated by tests/test_deploy.py with Debian's docker-compose (no engine needed)
 if ! command -v docker-compose >/dev/null && command -v apt-get >/dev/null; then
   (apt-get install -y -qq docker-compose >/dev/null 2>&1 \
