@@ -52,6 +52,12 @@ class Pose:
         return -self.R.T @ self.t
 
     @classmethod
+    def of_image(cls, image: pycolmap.Image) -> Pose:
+        """The world-to-camera pose of a registered pycolmap image."""
+        m = np.asarray(image.cam_from_world().matrix())
+        return cls(m[:, :3].copy(), m[:, 3].copy())
+
+    @classmethod
     def from_center(cls, R_world_from_cam: np.ndarray, center: np.ndarray) -> Pose:
         R = R_world_from_cam.T
         return cls(R, -R @ np.asarray(center, float))
@@ -105,9 +111,8 @@ def read_model(path: str | Path) -> tuple[dict[str, Camera], dict[str, Pose]]:
     for img in rec.images.values():
         if not img.has_pose:
             continue
-        m = img.cam_from_world().matrix()
         cams[img.name] = Camera.from_pycolmap(img.camera)
-        poses[img.name] = Pose(m[:, :3].copy(), m[:, 3].copy())
+        poses[img.name] = Pose.of_image(img)
     return cams, poses
 
 

@@ -51,8 +51,7 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 
 def pose_of_image(image: pycolmap.Image) -> Pose:
     """The world-to-camera pose of a registered pycolmap image."""
-    m = np.asarray(image.cam_from_world().matrix())
-    return Pose(m[:, :3].copy(), m[:, 3].copy())
+    return Pose.of_image(image)
 
 
 def scaled_intrinsics(

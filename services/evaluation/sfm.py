@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from services.geometry import rotation_angle_deg
+from services.geometry import pose_of_image, rotation_angle_deg
 from services.pos import LocalFrame
 
 from .common import EvaluationError, image_set, read_gt_model, require_scene
@@ -161,8 +161,8 @@ def evaluate_sfm(
     est = {}
     for img in rec.images.values():
         if img.has_pose and img.name in gt_poses:
-            m = np.asarray(img.cam_from_world().matrix())
-            est[img.name] = (m[:, :3], -m[:, :3].T @ m[:, 3])
+            pose = pose_of_image(img)
+            est[img.name] = (pose.R, pose.center)
     names = sorted(est)
     rows = {n: {"name": n, "set": image_set(n)} for n in names}
     _absolute_errors(rows, est, gt_poses, frame, truth)

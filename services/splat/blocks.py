@@ -312,15 +312,15 @@ def crop_views(block: Block, rec: pycolmap.Reconstruction, images: Path):
         cam = Camera.from_pycolmap(img.camera)
         K = crop.intrinsics(cam.K)
         w, h = crop.size
-        m = img.cam_from_world().matrix()
+        pose = Pose.of_image(img)
         full = load_image(images / crop.image, cam.width, cam.height)
         window = full[crop.y0 : crop.y1, crop.x0 : crop.x1].permute(2, 0, 1)[None]
         pixels = torch.nn.functional.interpolate(window, size=(h, w), mode="area")[0].permute(1, 2, 0)
         v = View(f"{crop.image}@{crop.x0},{crop.y0}", torch.tensor(K, dtype=torch.float32),
-                 viewmat_from_pose(m[:, :3], m[:, 3]), w, h, pixels.contiguous())  # fmt: skip
+                 viewmat_from_pose(pose.R, pose.t), w, h, pixels.contiguous())  # fmt: skip
         ids = [p.point3D_id for p in img.points2D if p.has_point3D()]
         xyz = np.array([rec.points3D[i].xyz for i in ids], float).reshape(-1, 3)
-        v.depth_pixels, v.depth_targets = sparse_depth(xyz, K, m, w, h)
+        v.depth_pixels, v.depth_targets = sparse_depth(xyz, K, pose, w, h)
         v.limits = Crop.limits(cam.K, cam.width, cam.height)
         views.append(v)
     return views

@@ -228,11 +228,11 @@ def load_scene(
             continue
         c = Camera.from_pycolmap(img.camera)
         K, w, h = scaled_intrinsics(c.K, c.width, c.height, max_width)
-        m = img.cam_from_world().matrix()
-        v = View(img.name, torch.tensor(K, dtype=torch.float32), viewmat_from_pose(m[:, :3], m[:, 3]), w, h)
+        pose = Pose.of_image(img)
+        v = View(img.name, torch.tensor(K, dtype=torch.float32), viewmat_from_pose(pose.R, pose.t), w, h)
         ids = [p.point3D_id for p in img.points2D if p.has_point3D()]
         xyz = np.array([rec.points3D[i].xyz for i in ids], float).reshape(-1, 3)
-        v.depth_pixels, v.depth_targets = sparse_depth(xyz, K, m, w, h)
+        v.depth_pixels, v.depth_targets = sparse_depth(xyz, K, pose, w, h)
         if images is not None:
             v.image = load_image(Path(images) / img.name, w, h)
         views.append(v)
@@ -249,13 +249,16 @@ MIN_DEPTH_FRACTION = 1e-3  # sparse-depth targets nearer than this fraction of a
 
 
 def sparse_depth(
-    xyz: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, width: int, height: int
+    xyz: np.ndarray, K: np.ndarray, cam_from_world: Pose | np.ndarray, width: int, height: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixels (M, 2) and z-depths (M,) of the points `xyz` (N, 3) in front of the camera and inside the
     image (float32 tensors). Points nearer than MIN_DEPTH_FRACTION of the median depth are left out: a
     degenerate SfM point at a camera's centre (seen in `midview demo`'s model: z = 1e-8 m where the median
     was 75 m) would make the loss in disparity 1e8 and pull the depth there towards zero."""
-    uv, z = Pose(cam_from_world[:, :3], cam_from_world[:, 3]).project(np.asarray(K, float), xyz)
+    pose = cam_from_world
+    if not isinstance(pose, Pose):  # its (3, 4) matrix
+        pose = Pose(np.asarray(pose)[:, :3], np.asarray(pose)[:, 3])
+    uv, z = pose.project(np.asarray(K, float), xyz)
     keep = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
     if keep.any():
         keep &= z > MIN_DEPTH_FRACTION * np.median(z[keep])

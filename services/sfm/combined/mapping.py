@@ -14,7 +14,13 @@ import pycolmap
 from services.colmap_model import Pose
 from services.geometry import pose_of_image
 from services.sfm.combined.database import CombinedDatabase
-from services.sfm.combined.model import _max_angle_deg, _projection, _triangulate, registered_ground
+from services.sfm.combined.model import (
+    _max_angle_deg,
+    _projection,
+    _triangulate,
+    pose_of_record,
+    registered_ground,
+)
 
 logger = logging.getLogger("midview.combined_sfm")
 
@@ -92,7 +98,7 @@ def _register_at_pnp(
         if dbim.camera_id not in rec.cameras:
             rec.add_camera_with_trivial_rig(cams[dbim.camera_id])
         r = pnp[g]
-        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(r["R"], float)), np.asarray(r["t"], float))
+        pose = pose_of_record(r)
         if ids[g] in rec.images:  # unregistered in the model (the input model: the mapper made none)
             frame_id = rec.images[ids[g]].frame_id
             rec.frames[frame_id].rig_from_world = pose  # trivial rig: the camera is the rig

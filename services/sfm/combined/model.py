@@ -50,6 +50,11 @@ def _add_aerial(
     return registered
 
 
+def pose_of_record(r: dict) -> pycolmap.Rigid3d:
+    """The cam_from_world pose of a reducer's ground_poses.json record (R, t)."""
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(r["R"], float)), np.asarray(r["t"], float))
+
+
 def _add_pnp_seeds(
     rec: pycolmap.Reconstruction,
     pnp: dict[str, dict],
@@ -73,7 +78,7 @@ def _add_pnp_seeds(
             continue
         iid = ids[g]
         im = pycolmap.Image(name=g, keypoints=kps[iid], camera_id=ground_cam_id, image_id=iid)
-        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(r["R"], float)), np.asarray(r["t"], float))
+        pose = pose_of_record(r)
         rec.add_image_with_trivial_frame(im, pose)
         out.add(g)
     return out
