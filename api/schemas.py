@@ -106,6 +106,11 @@ class UploadOut(BaseModel):
         "the check failed (error; the object deleted; start the upload again)",
     )
     error: str | None = Field(None, description="Why the check rejected it")
+    part_urls: list[PartUrl] | None = Field(
+        None,
+        description="In the answer to the start, with presigned parts (up to 256 of them): where to PUT "
+        "each part, so that no GET .../parts/{n} is needed (they expire; GET a part's URL again then)",
+    )
 
 
 class PartUrl(BaseModel):
@@ -115,6 +120,9 @@ class PartUrl(BaseModel):
     expires_in: int | None = Field(None, description="Seconds the URL stays valid (presigned)")
     needs_auth: bool = Field(description="Whether to send the API key (API route) or not (presigned)")
     size: int = Field(description="Bytes expected in this part")
+
+
+UploadOut.model_rebuild()
 
 
 class PartOut(BaseModel):

@@ -60,7 +60,7 @@ class Image(TypedDict):
     size_bytes: int
 
 
-class Upload(TypedDict):
+class Upload(TypedDict, total=False):
     id: str
     name: str
     size: int
@@ -68,6 +68,8 @@ class Upload(TypedDict):
     part_size: int
     part_count: int
     parts_via: str
+    state: str
+    part_urls: list[dict[str, Any]] | None  # with the start: where to PUT each part (presigned)
 
 
 class Job(TypedDict, total=False):
@@ -243,13 +245,28 @@ class MidviewClient:
     def upload_parts(self, project_id: str, upload_id: str) -> dict[str, Any]:
         return self._json("GET", f"/projects/{project_id}/uploads/{upload_id}/parts")
 
-    def put_part(self, project_id: str, upload_id: str, number: int, data: bytes) -> str:
-        """Send part `number` where the service says (presigned storage URL or the API); its ETag."""
-        where = self._json("GET", f"/projects/{project_id}/uploads/{upload_id}/parts/{number}")
+    def put_part(
+        self, project_id: str, upload_id: str, number: int, data: bytes, where: dict[str, Any] | None = None
+    ) -> str:
+        """Send part `number` where the service says (presigned storage URL or the API); its ETag.
+        `where`: the part's URL given with the upload's start (else asked for); an expired one (403) is
+        asked for again."""
+        if where is None:
+            where = self._json("GET", f"/projects/{project_id}/uploads/{upload_id}/parts/{number}")
         url = where["url"]
         if self._is_api(url) or where["needs_auth"]:
             r = self.request("PUT", url, content=data)
             return r.json()["etag"]
+        try:
+            return self._put_presigned(url, data)
+        except ApiError as e:
+            if e.status != 403:
+                raise
+        fresh = self._json("GET", f"/projects/{project_id}/uploads/{upload_id}/parts/{number}")
+        return self._put_presigned(fresh["url"], data)
+
+    def _put_presigned(self, url: str, data: bytes) -> str:
+        """PUT to a presigned storage URL, retried on transient errors; the part's ETag."""
         for attempt in range(self.retries + 1):
             try:
                 r = self._plain.put(url, content=data)

@@ -75,10 +75,11 @@ def _send_parts(
     [(part number, ETag)] in part order)."""
     size = upload["part_size"]
     lock = threading.Lock()
+    urls = {u["part_number"]: u for u in upload.get("part_urls") or []}  # given with the start
 
     def send(fd: int, n: int) -> tuple[int, int, str]:
         data = os.pread(fd, size, (n - 1) * size)
-        etag = mv.put_part(project_id, upload["id"], n, data)
+        etag = mv.put_part(project_id, upload["id"], n, data, urls.get(n))
         if on_part is not None:
             with lock:
                 on_part(upload["name"], n, upload["part_count"], len(data))

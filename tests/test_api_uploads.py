@@ -332,3 +332,36 @@ def test_completion_without_waiting_checks_in_the_background(api_env, make_jpeg)
         ("ground/G9.jpg", "rejected")
     ]
     assert verifier.sweep() == []  # rejected: not taken again
+
+
+def test_the_start_gives_every_part_url_with_presigned_parts(api_env, make_jpeg) -> None:
+    """With S3 the answer to the start holds the presigned URL of every part: the parts go to the bucket
+    with no request to the API between the start and the completion. Local storage gives none (the
+    parts go through the API route)."""
+    c, t = api_env.client, api_env.tenant()
+    pid = _project(api_env, t)
+    data = make_jpeg(320, 240, seed=8, padding=11 * MB)  # three parts
+    r = c.post(
+        f"/projects/{pid}/uploads", json={"name": "aerial/URLS.jpg", "size": len(data)}, headers=t.headers
+    )
+    assert r.status_code == 201, r.text
+    up = r.json()
+    if not api_env.s3:
+        assert up["part_urls"] is None
+        return
+    urls = up["part_urls"]
+    assert [u["part_number"] for u in urls] == [1, 2, 3] and not any(u["needs_auth"] for u in urls)
+    assert [u["size"] for u in urls] == [up["part_size"], up["part_size"], len(data) - 2 * up["part_size"]]
+    parts = []
+    for u in urls:
+        chunk = data[(u["part_number"] - 1) * up["part_size"] : u["part_number"] * up["part_size"]]
+        put = httpx.put(u["url"], content=chunk, timeout=30)
+        assert put.status_code == 200, put.text
+        parts.append({"part_number": u["part_number"], "etag": put.headers["etag"]})
+    r = c.post(f"/projects/{pid}/uploads/{up['id']}/complete", json={"parts": parts}, headers=t.headers)
+    assert r.status_code == 201, r.text
+    assert api_env.storage.get_bytes(image_key_for_name(t.id, pid, "aerial/URLS.jpg")) == data
+    # a later listing does not repeat them
+    assert all(
+        u.get("part_urls") is None for u in c.get(f"/projects/{pid}/uploads", headers=t.headers).json()
+    )

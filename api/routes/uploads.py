@@ -1,9 +1,10 @@
 """Resumable multipart uploads of large images.
 
-1. `POST /projects/{p}/uploads` {name, size, sha256?} -> an upload id, the part size and count; at most
-   one upload per image name is in progress (a database row, unique per project and name);
-2. for each part n: `GET .../uploads/{u}/parts/{n}` -> where to PUT it: a presigned storage URL (S3; no
-   API key, the response's ETag header is the part's ETag) or the API route
+1. `POST /projects/{p}/uploads` {name, size, sha256?} -> an upload id, the part size and count (and with
+   S3 the presigned URL of every part, up to 256 of them); at most one upload per image name is in
+   progress (a database row, unique per project and name);
+2. for each part n: `GET .../uploads/{u}/parts/{n}` (unless the start gave it) -> where to PUT it: a
+   presigned storage URL (S3; no API key, the response's ETag header is the part's ETag) or the API route
    `PUT .../uploads/{u}/parts/{n}` (local storage; with the API key; returns the ETag);
    parts can go in parallel and be retried;
 3. to resume (the client lost its ETags, or which parts arrived): `GET .../uploads/{u}/parts` lists the
@@ -22,7 +23,7 @@ import logging
 import math
 import tempfile
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Request, Response, status
 from fastapi import Path as PathParam
@@ -55,6 +56,7 @@ log = logging.getLogger("midview.api")
 
 UploadId = Annotated[str, PathParam(description="Upload id")]
 PartNumber = Annotated[int, PathParam(ge=1, le=10_000)]
+MAX_PART_URLS = 256  # presigned part URLs given with the start of an upload (more: GET each)
 
 
 def plan_parts(size: int, part_size: int) -> tuple[int, int]:
@@ -166,7 +168,10 @@ def create_upload(
             raise HTTPException(status.HTTP_409_CONFLICT, busy) from None
         raise
     log.info("project %s: upload %s of %s started (%d parts)", project.id, upload.id, body.name, part_count)
-    return _out(upload, storage)
+    out = _out(upload, storage)
+    if out.parts_via == "presigned" and part_count <= MAX_PART_URLS:
+        out.part_urls = [_presigned_part(upload, storage, settings, n) for n in range(1, part_count + 1)]
+    return out
 
 
 @router.get("", response_model=list[UploadOut])
@@ -211,6 +216,17 @@ def list_parts(
     )
 
 
+def _presigned_part(upload: Upload, storage: Storage, settings: Any, n: int) -> PartUrl | None:
+    """Where to PUT part n straight to the storage (a presigned URL); None when it presigns nothing."""
+    url = storage.presigned_part_url(upload.storage_key, upload.storage_upload_id, n)
+    if url is None:
+        return None
+    size = _part_size(upload, n)
+    return PartUrl(
+        part_number=n, url=url, expires_in=settings.s3_presign_expiry_s, needs_auth=False, size=size
+    )
+
+
 @router.get("/{upload_id}/parts/{part_number}", response_model=PartUrl)
 def part_url(
     request: Request,
@@ -224,15 +240,9 @@ def part_url(
     """Where to PUT part n: a presigned storage URL when the backend has them, else this API."""
     upload = _load(session, project, upload_id)
     size = _part_size(upload, part_number)
-    url = storage.presigned_part_url(upload.storage_key, upload.storage_upload_id, part_number)
-    if url is not None:
-        return PartUrl(
-            part_number=part_number,
-            url=url,
-            expires_in=settings.s3_presign_expiry_s,
-            needs_auth=False,
-            size=size,
-        )
+    presigned = _presigned_part(upload, storage, settings, part_number)
+    if presigned is not None:
+        return presigned
     api_url = request.url_for(
         "upload_part", project_id=project.id, upload_id=upload_id, part_number=part_number
     )
