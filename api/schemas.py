@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from pydantic import AnyHttpUrl, BaseModel, ConfigDict, Field, field_validator
 
-from shared.job_options import JobOptions, Stage
+from services.pipeline import JobOptions, Stage
 
 ImageSet = Literal["aerial", "ground"]
 WebhookEvent = Literal["job.succeeded", "job.failed"]

@@ -260,7 +260,7 @@ def run_with_baselines(
                 if child is not None:
                     found, timings["baselines_process"] = child.wait()
                 else:
-                    pipeline._set_threads(job)
+                    pipeline.set_threads(job)
                     found = direct_baselines(scene, out / "baselines", aliked, sift, job.features_path)
             timings["baselines"] = time.perf_counter() - t0  # after the pipeline
     finally:

@@ -18,7 +18,7 @@ from pathlib import Path
 import typer
 
 from cli import demo as demo_mod
-from shared.job_options import DEFAULT_STAGES, STAGES
+from services.pipeline import DEFAULT_STAGES, STAGES
 
 logger = logging.getLogger("midview.cli.run")
 

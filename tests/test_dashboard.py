@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from shared.job_options import DEFAULT_STAGES
+from services.pipeline import DEFAULT_STAGES
 
 pytestmark = pytest.mark.slow
 

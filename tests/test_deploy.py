@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from shared.job_options import STAGE_QUEUES
+from services.pipeline import STAGE_QUEUES
 
 ROOT = Path(__file__).resolve().parents[1]
 

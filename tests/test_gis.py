@@ -3,8 +3,8 @@
 import pytest
 from pydantic import ValidationError
 
+from services.pipeline import JobOptions
 from services.sfm.gis import output_crs
-from shared.job_options import JobOptions
 
 
 def test_output_crs_is_projected():

@@ -1,4 +1,4 @@
-"""The pipeline (services/pipeline.py) end to end on the `tiny` synthetic preset, with the ground-truth
+"""The pipeline (services/pipeline/) end to end on the `tiny` synthetic preset, with the ground-truth
 renderer standing in for 3DGS (the 3DGS stages are tested in test_splat*.py), and its job folder
 mechanics: markers, fingerprints, skipping and resuming.
 
@@ -8,12 +8,13 @@ test of the mechanics, not of the matching quality (bench/method.py measures tha
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
 
 from services import pipeline
-from shared.job_options import DEFAULT_STAGES as STAGES
+from services.pipeline import DEFAULT_STAGES as STAGES
 from shared.matchfile import MatchFile
 
 
@@ -233,10 +234,8 @@ def test_a_changed_conf_reruns_that_stage_and_the_ones_after(tiny_job, monkeypat
     monkeypatch.setitem(
         pipeline.REGISTRY,
         "combined_sfm",
-        pipeline.StageDef(
-            "combined_sfm",
-            lambda j, r: calls.append("combined") or {},
-            *[getattr(pipeline.REGISTRY["combined_sfm"], f) for f in ("conf", "inputs", "outputs")],
+        dataclasses.replace(
+            pipeline.REGISTRY["combined_sfm"], run=lambda j, r: calls.append("combined") or {}
         ),
     )
     res = pipeline.run(job2, stages=["match_views", "reduce", "combined_sfm"])

@@ -31,7 +31,7 @@ import pytest
 from conftest import upload_survey, wait_for_job, worker_environment
 from servers import S3Server
 
-from shared.job_options import DEFAULT_STAGES as STAGES
+from services.pipeline import DEFAULT_STAGES as STAGES
 
 pytestmark = pytest.mark.slow
 

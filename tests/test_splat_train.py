@@ -317,9 +317,8 @@ def test_rescale_schedule_floors_and_errors():
 
 
 def test_pipeline_uses_the_same_rescaling(tmp_path):
-    from services.pipeline import Job
+    from services.pipeline import Job, JobOptions
     from services.splat import rescale_schedule
-    from shared.job_options import JobOptions
 
     for steps in (1000, 2000, 7000):
         job = Job(tmp_path, {}, JobOptions(splat_steps=steps, splat_max_width=320), {"splat_backend": "cpu"})
@@ -643,8 +642,7 @@ def test_cpu_blur_and_ssim_match_conv2d():
 
 
 def test_the_job_option_sets_the_trainers_time_budget(tmp_path):
-    from services.pipeline import Job
-    from shared.job_options import JobOptions, option_specs
+    from services.pipeline import Job, JobOptions, option_specs
 
     job = Job(tmp_path, {}, JobOptions(splat_time_budget_s=600), {"splat_backend": "cpu"})
     assert job.splat_conf()["time_budget_s"] == 600.0

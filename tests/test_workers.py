@@ -17,9 +17,9 @@ from pathlib import Path
 import pytest
 import sqlalchemy as sa
 
+from services.pipeline import STAGES
 from shared.db import crud
 from shared.db.models import Job, JobStatus, StageRun, StageStatus, utcnow
-from shared.job_options import STAGES
 from workers import jobsync
 
 # -- jobsync -------------------------------------------------------------------------------------

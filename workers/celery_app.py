@@ -3,7 +3,7 @@
     celery -A workers.celery_app worker -Q gpu,cpu,reduce -c 1     # or: midview worker --queues ...
     celery -A workers.celery_app beat                              # exactly one per deployment
 
-Queues (shared.job_options.STAGE_QUEUES): `gpu` (aerial SfM, 3DGS, view planning and rendering), `cpu`
+Queues (services.pipeline.STAGE_QUEUES): `gpu` (aerial SfM, 3DGS, view planning and rendering), `cpu`
 (one task per rendered view, and the fan-out), `reduce` (reducer, combined SfM, finalize, the
 periodic reconcile and webhook deliveries). Settings come from MIDVIEW_* (shared.config.Settings):
 broker_url, result_backend, and what the tasks need (database_url, storage, work_dir, ...).
@@ -23,8 +23,8 @@ from celery.beat import PersistentScheduler
 from celery.signals import worker_process_init
 from kombu import Exchange, Queue
 
+from services.pipeline import STAGE_QUEUES
 from shared.config import Settings, get_settings
-from shared.job_options import STAGE_QUEUES
 
 QUEUES = ("gpu", "cpu", "reduce")
 DEFAULT_QUEUE = "reduce"

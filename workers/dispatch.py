@@ -18,7 +18,7 @@ from typing import Any
 
 from celery import Celery, chain
 
-from shared.job_options import FANOUT_STAGES, STAGE_QUEUES
+from services.pipeline import FANOUT_STAGES, STAGE_QUEUES
 from workers.celery_app import (
     FAN_OUT,
     FINALIZE,

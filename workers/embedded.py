@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from shared.job_options import FANOUT_STAGES
+from services.pipeline import FANOUT_STAGES
 from workers import execute
 
 log = logging.getLogger("midview.workers.embedded")

@@ -37,10 +37,10 @@ from typing import Any
 
 import sqlalchemy as sa
 
+from services.pipeline import STAGES, JobOptions
 from shared.db import crud
 from shared.db.models import TERMINAL_JOB_STATUSES, JobStatus, StageRun, StageStatus, utcnow
 from shared.db.session import get_engine, session_scope
-from shared.job_options import STAGES, JobOptions
 from shared.outcome import job_outcome
 from shared.storage import Storage, StorageKeyError, get_storage
 from workers import jobsync

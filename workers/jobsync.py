@@ -38,9 +38,9 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from services.digests import DigestCache
+from services.pipeline import JobOptions
 from shared.db import crud
 from shared.db.models import Job as JobRow
-from shared.job_options import JobOptions
 from shared.storage import Storage, StorageKeyError
 from shared.storage.keys import cameras_key
 

@@ -38,9 +38,9 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
+from services.pipeline import JobOptions
 from shared.db import crud
 from shared.db.models import Job, JobStatus, StageRun, StageStatus, utcnow
-from shared.job_options import JobOptions
 
 log = logging.getLogger("midview.workers.reconcile")
 

@@ -37,8 +37,8 @@ from typing import Any
 from celery import chain, chord
 from celery.exceptions import Ignore, Reject, Retry
 
+from services.pipeline import STAGE_QUEUES
 from shared.config import get_settings
-from shared.job_options import STAGE_QUEUES
 from workers import execute
 from workers.celery_app import (
     ALIVE_PATTERN,

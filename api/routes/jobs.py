@@ -23,11 +23,11 @@ from api.deps import (
 from api.events import job_events
 from api.schemas import JobCreate, JobDetail, JobOut, JobRerun, OptionsOut, OptionSpec, StageRunOut
 from api.status_cache import Entry
+from services.pipeline import JobOptions, option_specs
 from shared.db import crud
 from shared.db.crud import ConflictError
 from shared.db.models import Job, JobStatus, Project
 from shared.dispatch import Dispatcher
-from shared.job_options import JobOptions, option_specs
 from shared.storage import Storage, StorageKeyError
 from shared.storage.keys import cameras_key
 

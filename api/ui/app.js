@@ -5,9 +5,6 @@
 // A static report (`midview demo`'s report.html, cli/report_page.py) carries the API's answers for one job in
 // #midview-snapshot: the same pages then read those, read only, from the file system.
 
-const STAGES = ["aerial_sfm", "train_splat", "plan_views", "train_blocks", "render_views", "match_views", "reduce",
-  "combined_sfm", "splat_all"];
-const DEFAULT_STAGES = STAGES.filter((st) => st !== "splat_all");
 const main = document.getElementById("main");
 const nav = document.getElementById("nav");
 const SNAP = (() => { const el = document.getElementById("midview-snapshot"); return el ? JSON.parse(el.textContent) : null; })();
@@ -312,7 +309,7 @@ function jobNav(job, project) {
     h("a", { href: `#/jobs/${job.id}/3d`, id: "view3d-link" }, "3D"));
 }
 function stageRows(job) {
-  const wanted = (job.options && job.options.stages) || DEFAULT_STAGES;
+  const wanted = job.options.stages;  // the API's JobOptions: stage names from services.pipeline's registry
   const runs = job.stages.filter((r) => r.attempt === job.attempt);
   return wanted.map((st) => {
     const run = [...runs].reverse().find((r) => r.stage === st);
@@ -347,7 +344,7 @@ async function jobPage(jobId) {
     try { await api("POST", `/jobs/${jobId}/cancel`); } catch (x) { toast(x.message); }
   } }, "Cancel");
   const from = h("select", { id: "rerun-from" }, h("option", { value: "" }, "from the start"),
-    ((job.options && job.options.stages) || DEFAULT_STAGES).map((st) => h("option", { value: st }, `from ${st}`)));
+    job.options.stages.map((st) => h("option", { value: st }, `from ${st}`)));
   const rerun = h("button", { class: "secondary", id: "rerun-job", onclick: async () => {
     try { await api("POST", `/jobs/${jobId}/rerun`, { from_stage: from.value || null }); jobPage(jobId); } catch (x) { toast(x.message); }
   } }, "Rerun");

@@ -1,4 +1,4 @@
-"""Options of a pipeline job: one validated pydantic model shared by the API, the CLI and the workers.
+"""Options of a pipeline job: one validated pydantic model for the API, the CLI and the workers.
 
 The API lists them at `GET /options` (option_specs) and validates `POST /projects/{id}/jobs` bodies with
 JobOptions; the workers read `Job.options` back with `JobOptions.model_validate(job.options)`.
@@ -6,46 +6,13 @@ JobOptions; the workers read `Job.options` back with `JobOptions.model_validate(
 
 from __future__ import annotations
 
-from typing import Any, Literal, get_args
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-Stage = Literal[
-    "aerial_sfm",
-    "train_splat",
-    "plan_views",
-    "train_blocks",
-    "render_views",
-    "match_views",
-    "reduce",
-    "combined_sfm",
-    "splat_all",
-]
-STAGES: tuple[str, ...] = get_args(Stage)  # in pipeline order
-# stages a job runs only when asked (in `stages`): the 3DGS on all images of the combined model
-OPTIONAL_STAGES: frozenset[str] = frozenset({"splat_all"})
-DEFAULT_STAGES: tuple[str, ...] = tuple(s for s in STAGES if s not in OPTIONAL_STAGES)
+from services.pipeline.registry import DEFAULT_STAGES, GROUND_STAGES, STAGES
 
-# the Celery queue each stage runs on: gpu (SfM, 3DGS, rendering), cpu (per-view matching), reduce
-STAGE_QUEUES: dict[str, str] = {
-    "aerial_sfm": "gpu",
-    "train_splat": "gpu",
-    "plan_views": "gpu",
-    "train_blocks": "gpu",  # fanned out: one task per block (on the cpu queue where there is no GPU)
-    "render_views": "gpu",
-    "match_views": "cpu",  # fanned out: one task per rendered view
-    "reduce": "reduce",
-    "combined_sfm": "reduce",
-    "splat_all": "gpu",
-}
-
-# stages made of independent units, one task each (services.pipeline.FanOut): their first task prepares
-# the units and fans them out, a last run of the stage checks and summarises them
-FANOUT_STAGES = frozenset({"train_blocks", "match_views"})
-# stages that need ground images (everything after the aerial-only part)
-GROUND_STAGES = frozenset(
-    {"plan_views", "train_blocks", "render_views", "match_views", "reduce", "combined_sfm", "splat_all"}
-)
+Stage = Literal[STAGES]  # the registry's stage names, in pipeline order
 
 
 class JobOptions(BaseModel):
