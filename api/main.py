@@ -20,6 +20,7 @@ from api.auth import KeyCache
 from api.bootstrap import ensure_api_key
 from api.config import ApiSettings
 from api.errors import install_error_handlers
+from api.gcwatch import GcWatch
 from api.middleware import BodyLimitMiddleware, RequestLogMiddleware, route_limits
 from api.ratelimit import make_rate_limiter
 from api.routes import ROUTERS
@@ -59,11 +60,13 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     # in flight would wait for (the tail of the status read's latency under load)
     gc.collect()
     gc.freeze()
+    watch = GcWatch().install()
     sweeper = asyncio.create_task(_sweep_uploads(app))
     try:
         yield
     finally:
         sweeper.cancel()
+        watch.remove()
         app.state.verifier.close()
         close = getattr(app.state.dispatcher, "close", None)
         if callable(close):

@@ -58,6 +58,7 @@ class _Tally:
     shared: int = 0  # the window's count in Redis at the last sync
     pending: int = 0  # hits of this process not yet added to Redis
     synced_at: float = 0.0
+    syncing: bool = False  # an INCRBY of this key is on its way to Redis
 
 
 class RedisRateLimiter:
@@ -93,9 +94,11 @@ class RedisRateLimiter:
             tally = self._tallies[key] = _Tally(window)
         tally.pending += 1
         near = tally.shared + tally.pending + self.BATCH >= self.limit
-        if not near and tally.pending < self.BATCH and now - tally.synced_at < self.SYNC_S:
+        if not near and (
+            tally.syncing or (tally.pending < self.BATCH and now - tally.synced_at < self.SYNC_S)
+        ):  # one sync at a time: the hits that come while one is on its way go with the next
             return None
-        n, tally.pending = tally.pending, 0
+        n, tally.pending, tally.syncing = tally.pending, 0, True
         try:
             async with self._async_client().pipeline() as pipe:
                 pipe.incrby(name, n)
@@ -104,6 +107,8 @@ class RedisRateLimiter:
         except (redis.RedisError, OSError) as e:
             log.warning("rate limit not applied: Redis does not answer (%s)", e)
             return None
+        finally:
+            tally.syncing = False
         tally.shared, tally.synced_at = max(tally.shared, count), now
         return self._wait(count + tally.pending, window, now)
 

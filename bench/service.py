@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import json
 import os
+import re
 import shutil
 import statistics
 import sys
@@ -351,6 +352,12 @@ end
     }
 
 
+def gc_pauses(log: Path) -> list[float]:
+    """The API's garbage-collector pauses of 20 ms or more (api/gcwatch.py logs them), in ms."""
+    text = log.read_text(errors="replace") if log.is_file() else ""
+    return [float(m) for m in re.findall(r"gc pause: generation \d+, ([0-9.]+) ms", text)]
+
+
 # 2. uploads
 def make_jpeg(mb: float) -> bytes:
     import cv2
@@ -590,6 +597,16 @@ def main() -> None:
         figures["status_p99_ms_1_client"] = one["p99"]
         figures["status_rps_50_clients"] = jobs["rps"]
         figures["healthz_p99_ms_50_clients"] = health["p99"]
+        pauses = gc_pauses(stack.tmp / "uvicorn.log")
+        figures["api_gc_pauses_over_20ms"] = len(pauses)
+        figures["api_gc_worst_pause_ms"] = max(pauses, default=0.0)
+        rows.append(
+            (
+                "API garbage-collector pauses >= 20 ms",
+                str(len(pauses)),
+                f"worst {max(pauses, default=0):.0f} ms",
+            )
+        )
         for name, m in (("GET /healthz", health), ("GET /jobs/{id}", jobs)):
             rows.append((f"{name} p50 / p99", f"{m['p50']:.1f} / {m['p99']:.1f} ms", f"{m['errors']} errors"))
             rows.append((f"{name} throughput", f"{m['rps']:.0f} req/s", f"{args.clients} clients"))

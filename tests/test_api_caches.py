@@ -112,6 +112,41 @@ def test_batched_redis_limiter_is_exact_for_one_process_and_shared(redis_url):
     assert all(w is not None for w in asyncio.run(hits(other, 3)))
 
 
+def test_batched_redis_limiter_sends_one_sync_at_a_time(redis_url):
+    """Hits that come while a key's count is on its way to Redis wait for the next sync instead of
+    each sending their own (50 concurrent requests once sent 50 pipelines at every sync: the tail of
+    the status read's latency under load); the count in Redis still gets every hit."""
+    import uuid
+
+    import redis
+
+    from api.ratelimit import RedisRateLimiter
+
+    prefix = f"midview:test-rate-{uuid.uuid4().hex[:6]}:"
+    limiter = RedisRateLimiter(redis_url, limit=10**6, window_s=60.0, prefix=prefix)
+    pipelines = []
+
+    async def scenario() -> None:
+        client = limiter._async_client()
+        real = client.pipeline
+
+        def counted(*args, **kwargs):
+            pipelines.append(1)
+            return real(*args, **kwargs)
+
+        client.pipeline = counted
+        got = await asyncio.gather(*(limiter.ahit("k") for _ in range(50)))
+        assert all(w is None for w in got)
+        assert len(pipelines) == 1, len(pipelines)  # the first hit syncs, the 49 others count locally
+        limiter._tallies["k"].synced_at = 0.0  # the sync interval over: the next hit sends the 49
+        await limiter.ahit("k")
+        assert len(pipelines) == 2
+
+    asyncio.run(scenario())
+    name = next(iter(redis.Redis.from_url(redis_url).scan_iter(f"{prefix}*")))
+    assert int(redis.Redis.from_url(redis_url).get(name)) == 51
+
+
 def test_key_cache_resolves_one_lookup_at_a_time():
     clock = Clock()
     cache = KeyCache(5.0, clock=clock)
