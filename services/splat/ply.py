@@ -28,7 +28,7 @@ def save_ply(splats: dict[str, torch.Tensor], path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     t = {k: v.detach().cpu().float() for k, v in splats.items()}
     n = len(t["means"])
-    rest = t["shN"].transpose(1, 2).reshape(n, -1)  # (N, 3, K-1) -> channel-major
+    rest = t["shN"].transpose(1, 2).reshape(n, 3 * t["shN"].shape[1])  # (N, K-1, 3) -> channel-major
     cols = [t["means"], torch.zeros(n, 3), t["sh0"].reshape(n, 3), rest, t["opacities"][:, None], t["scales"]]
     data = torch.cat([*cols, t["quats"]], 1).numpy().astype("<f4")
     names = _fields(rest.shape[1])
