@@ -244,3 +244,112 @@ def test_walk_layout_takes_ground_images_in_sequence():
     assert {v.kind for v in views} <= {"in", "diag", "along"}
     spread = confs["small"]["ground"]
     assert "layout" not in spread  # the other presets keep their cameras spread round the blocks
+
+
+def _one_building(relief: float):
+    """A scene of one 20 x 10 x 12 m building (bays of 3 m, floors of 3 m over a 4 m ground floor) with
+    openings recessed `relief` m, and its grid."""
+    from services.synth.materials import (
+        MAT_BUILDING,
+        NPAR,
+        P_BAY,
+        P_DOOR,
+        P_FLOOR,
+        P_GFLOOR,
+        P_PARAPET,
+        P_PHOTO,
+        P_RELIEF,
+        P_SEED,
+        P_WINH,
+        P_WINW,
+    )  # fmt: skip
+    from services.synth.scene import Scene
+
+    par = np.zeros(NPAR)
+    par[:3] = 0.6
+    values = {P_FLOOR: 3.0, P_GFLOOR: 4.0, P_BAY: 3.0, P_WINW: 0.5, P_WINH: 0.5, P_PARAPET: 0.5}
+    for k, v in {**values, P_DOOR: 0.99, P_SEED: 5, P_PHOTO: -1.0, P_RELIEF: relief}.items():
+        par[k] = v
+    scene = Scene(
+        np.array([[0.0, 0.0, 0.0, 20.0, 10.0, 12.0]]), np.array([MAT_BUILDING]), par[None], np.array([-1]),
+        np.zeros((0, 4)), np.zeros(0, np.int64), np.zeros((0, NPAR)), np.zeros(0, np.int64),
+        np.zeros((1, 1), np.int64), np.zeros(8), np.zeros(8), np.zeros(4),
+    )  # fmt: skip
+    return scene, scene.grid()
+
+
+def test_recessed_openings_have_depth_reveals_and_shade():
+    """A ray through a window's middle goes `relief` deeper than one on the wall beside it; one that
+    enters the opening at 45 degrees near its edge stops on the jamb, whose normal faces it; the sun
+    straight in front lights the glass, a sun low from the side leaves it in the jamb's shadow."""
+    from services.synth import kernels as K
+
+    scene, (gmeta, cstart, citems) = _one_building(0.25)
+    args = (scene.boxes, scene.bmat, scene.bpar, scene.sph, gmeta, cstart, citems)
+    # bay 0 of the -y facade: u (= x) in 1.75..3.25 on the first floor (z 4.85..6.35)
+    glass = K.trace_camera(2.5, -10.0, 5.6, 0.0, 1.0, 0.0, *args)
+    wall = K.trace_camera(4.0, -10.0, 5.6, 0.0, 1.0, 0.0, *args)
+    assert wall[0] == pytest.approx(10.0) and wall[4] == 0
+    assert glass[0] == pytest.approx(10.25) and glass[4] == 1 and glass[3] == 2
+    s = 1 / np.sqrt(2)
+    jamb = K.trace_camera(3.1 - 10.0, -10.0, 5.6, s, s, 0.0, *args)
+    assert jamb[4] == 2 and jamb[5] == 0  # the jamb at u1 faces -x, against the ray
+    assert jamb[0] * s == pytest.approx(10.15)
+    box, par = scene.boxes[0], scene.bpar[0]
+    assert K.out_of_recess(2.5, 0.25, 5.6, 2, box, par, 0.0, -1.0, 0.0)  # the sun in front
+    low = np.array([0.95, -0.25, 0.1])
+    assert not K.out_of_recess(2.5, 0.25, 5.6, 2, box, par, *(low / np.linalg.norm(low)))
+    flat, (gm, cs, ci) = _one_building(0.0)
+    assert K.trace_camera(
+        2.5, -10.0, 5.6, 0.0, 1.0, 0.0, flat.boxes, flat.bmat, flat.bpar, flat.sph, gm, cs, ci
+    )[0] == pytest.approx(10.0)
+
+
+def test_wall_atlas_cuts_the_crops_at_their_scale(tmp_path):
+    """The wall photos are the crops' pixels (their boxes, not whole photos), mip-mapped; a missing
+    photo is an error that names it."""
+    from services.synth.walls import LEVELS, WALL_CROPS, wall_atlas
+
+    rng = np.random.default_rng(1)
+    photos = {}
+    for name in {c["photo"] for c in WALL_CROPS}:
+        photos[name] = rng.integers(0, 255, (768, 1024, 3), dtype=np.uint8)
+        cv2.imwrite(str(tmp_path / name.replace(".jpg", ".png")), photos[name])
+    with pytest.raises(FileNotFoundError, match="26.jpg"):
+        wall_atlas(tmp_path)
+    for name, img in photos.items():
+        cv2.imwrite(str(tmp_path / name), img, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    atlas, aoff, adim, m_per_px = wall_atlas(tmp_path)
+    assert aoff.shape == (len(WALL_CROPS), LEVELS) and list(m_per_px) == [c["m_per_px"] for c in WALL_CROPS]
+    for k, c in enumerate(WALL_CROPS):
+        x0, y0, x1, y1 = c["box"]
+        assert tuple(adim[k, 0]) == (y1 - y0, x1 - x0) and tuple(adim[k, 1]) == (
+            (y1 - y0) // 2,
+            (x1 - x0) // 2,
+        )
+        crop = atlas[aoff[k, 0] : aoff[k, 0] + (y1 - y0) * (x1 - x0) * 3].reshape(y1 - y0, x1 - x0, 3)
+        whole = cv2.cvtColor(cv2.imread(str(tmp_path / c["photo"])), cv2.COLOR_BGR2RGB)
+        assert np.array_equal(crop, whole[y0:y1, x0:x1])
+
+
+def test_transient_cars_are_there_in_one_capture_only():
+    """With a transient share, some parked cars are in the aerial capture's scene only and others in the
+    ground's; the layout is the same as without them, and a scene without any is its own capture."""
+    import copy
+
+    from services.synth.scene import make_scene
+
+    conf = copy.deepcopy(confs["small"]["scene"])
+    plain = make_scene(conf, np.random.default_rng(4))
+    assert plain.transient == {} and plain.for_capture("ground") is plain
+    conf["transient"] = 0.5
+    scene = make_scene(conf, np.random.default_rng(4))
+    assert np.array_equal(scene.boxes, plain.boxes)
+    kinds = set(scene.transient.values())
+    assert kinds == {"aerial", "ground"}, scene.transient
+    aerial, ground = scene.for_capture("aerial"), scene.for_capture("ground")
+    only_ground = [g for g, c in scene.transient.items() if c == "ground"]
+    only_aerial = [g for g, c in scene.transient.items() if c == "aerial"]
+    assert not np.isin(aerial.bgroup, only_ground).any() and np.isin(aerial.bgroup, only_aerial).any()
+    assert not np.isin(ground.bgroup, only_aerial).any() and np.isin(ground.bgroup, only_ground).any()
+    assert len(aerial.boxes) < len(scene.boxes) and len(ground.boxes) < len(scene.boxes)

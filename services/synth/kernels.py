@@ -48,10 +48,13 @@ from .materials import (
     P_PHOTO,
     P_R,
     P_R2,
+    P_RELIEF,
     P_ROOF,
     P_SEED,
     P_SHOP,
     P_STYLE,
+    P_WALL,
+    P_WALL_M,
     P_WINH,
     P_WINW,
     P_Z0,
@@ -341,6 +344,23 @@ def facade_photo(u, z, fp, cell_w, fs, atlas, aoff, adim, lut):
     return photo_sample(atlas, aoff, adim, lut, p, s, t, cell_w * crop / w0, fp)
 
 
+@njit(cache=True)
+def mirrored(x, n):
+    """x folded into [0, n): tiles mirrored at every edge, so that neighbouring tiles meet seamlessly."""
+    m = x % (2.0 * n)
+    return m if m < n else 2.0 * n - m
+
+
+@njit(cache=True)
+def wall_photo(u, z, fp, par, atlas, aoff, adim, lut):
+    """The wall photo par[P_WALL] (services.synth.walls) tiled over a facade at its scale par[P_WALL_M]."""
+    p = np.int64(par[P_WALL])
+    m = par[P_WALL_M]
+    s = mirrored(u / m, adim[p, 0, 1] - 1.0)
+    t = mirrored(-z / m, adim[p, 0, 0] - 1.0)
+    return photo_sample(atlas, aoff, adim, lut, p, s, t, m, fp)
+
+
 # ------------------------------------------------------------------------------------ materials
 
 
@@ -534,7 +554,10 @@ def facade(u, z, L, ztop, fp, par, fs, atlas, aoff, adim, lut):
         r, g, b = facade_photo(u, z, fp, par[P_PHOTO], fs, atlas, aoff, adim, lut)
         k = math.exp(0.12 * fbm2(u, z, fs * 5 + 7, 0.25, fp, 0.002, 0.85))
         return r * k, g * k, b * k
-    r, g, b = facade_wall(u, z, r, g, b, fp, par, fs)
+    if par[P_WALL] >= 0.0:
+        r, g, b = wall_photo(u, z, fp, par, atlas, aoff, adim, lut)
+    else:
+        r, g, b = facade_wall(u, z, r, g, b, fp, par, fs)
     r, g, b = facade_openings(u, z, L, ztop, r, g, b, fp, par, fs)
     hg = par[P_GFLOOR]
     v = z - par[P_Z0]
@@ -1024,6 +1047,140 @@ def trace(ox, oy, oz, dx, dy, dz, boxes, sph, gmeta, cstart, citems, any_hit, sk
     return best, kind, idx, face
 
 
+# ------------------------------------------------------------------------------------ relief
+@njit(cache=True)
+def face_frame(face, bx):
+    """u = ua x + ub y + uc along a vertical box face (0 -x, 1 +x, 2 -y, 3 +y; u as box_albedo's),
+    its outward normal (nx, ny) and length L: (ua, ub, uc, nx, ny, L)."""
+    if face == 0:
+        return 0.0, -1.0, bx[4], -1.0, 0.0, bx[4] - bx[1]
+    if face == 1:
+        return 0.0, 1.0, -bx[1], 1.0, 0.0, bx[4] - bx[1]
+    if face == 2:
+        return 1.0, 0.0, -bx[0], 0.0, -1.0, bx[3] - bx[0]
+    return -1.0, 0.0, bx[3], 0.0, 1.0, bx[3] - bx[0]
+
+
+@njit(cache=True)
+def opening_rect(u, z, L, ztop, par, fs):
+    """The opening of a facade around (u, z) (facade_openings' layout: a window's frame and glass, a door,
+    a shop window): (inside, u0, u1, z0, z1), the rectangle in face coordinates."""
+    hg = par[P_GFLOOR]
+    bay = par[P_BAY]
+    v = z - par[P_Z0]
+    n = max(1, np.int64(L / bay))
+    m = 0.5 * (L - n * bay)
+    bi = np.int64(math.floor((u - m) / bay))
+    if not 0 <= bi < n:
+        return False, 0.0, 0.0, 0.0, 0.0
+    uc = m + (bi + 0.5) * bay
+    ww = 0.5 * bay * par[P_WINW]
+    if hg > 0.0 and v < hg:
+        if hashf(bi, 0, fs, 9) < par[P_SHOP]:  # the shop window under its sign band
+            hw, v0, v1 = 0.5 * bay - 0.14, 0.51, hg - 0.96
+        elif bi == np.int64(par[P_DOOR] * n):
+            hw, v0, v1 = 0.57, 0.0, 2.32
+        else:
+            hw, v0, v1 = ww, 1.1, 1.1 + min(hg - 1.9, 1.7)
+    else:
+        hf = par[P_FLOOR]
+        fl = np.int64(math.floor((v - hg) / hf))
+        if hg + (fl + 1) * hf > ztop - par[P_Z0] - par[P_PARAPET] + 1e-6:
+            return False, 0.0, 0.0, 0.0, 0.0
+        hw, v0 = ww, hg + fl * hf + 0.85
+        v1 = v0 + hf * par[P_WINH]
+    z0 = par[P_Z0] + v0
+    z1 = par[P_Z0] + v1
+    inside = abs(u - uc) < hw and z0 < z < z1
+    return inside, uc - hw, uc + hw, z0, z1
+
+
+@njit(cache=True)
+def relief(ox, oy, oz, dx, dy, dz, t, face, bx, par):
+    """A camera ray that hit facade `face` of building box bx at t, through the recessed opening there
+    (par[P_RELIEF] deep): (t, code, nface) with code 0 the wall (no opening: t unchanged), 1 the window
+    or door at the back of the recess, 2 a reveal (jamb, sill or head) with normal nface."""
+    fs = np.int64(par[P_SEED]) * 8 + face
+    ua, ub, uc, nx, ny, L = face_frame(face, bx)
+    px = ox + t * dx
+    py = oy + t * dy
+    pz = oz + t * dz
+    u = ua * px + ub * py + uc
+    inside, u0, u1, z0, z1 = opening_rect(u, pz, L, bx[5], par, fs)
+    dn = -(nx * dx + ny * dy)
+    if not inside or dn <= 0.0:
+        return t, 0, face
+    du = ua * dx + ub * dy
+    tb = t + par[P_RELIEF] / dn
+    tu = _INF
+    if du > 0.0:
+        tu = t + (u1 - u) / du
+    elif du < 0.0:
+        tu = t + (u0 - u) / du
+    tz = _INF
+    if dz > 0.0:
+        tz = t + (z1 - pz) / dz
+    elif dz < 0.0:
+        tz = t + (z0 - pz) / dz
+    if tb <= min(tu, tz):
+        return tb, 1, face
+    if tu < tz:  # a jamb, facing against the ray's travel along u
+        wx = -ua if du > 0.0 else ua
+        wy = -ub if du > 0.0 else ub
+        if wx != 0.0:
+            return tu, 2, (0 if wx < 0.0 else 1)
+        return tu, 2, (2 if wy < 0.0 else 3)
+    return tz, 2, (4 if dz > 0.0 else 5)  # the head's soffit (seen from below) or the sill
+
+
+@njit(cache=True)
+def out_of_recess(px, py, pz, face, bx, par, sx, sy, sz):
+    """Whether the ray from a point in a recessed opening of facade `face` towards s leaves the recess
+    through the opening rather than through a reveal (the reveals' shadows on the glass and on each
+    other)."""
+    fs = np.int64(par[P_SEED]) * 8 + face
+    ua, ub, uc, nx, ny, L = face_frame(face, bx)
+    sn = nx * sx + ny * sy
+    if sn <= 0.0:
+        return False
+    if face < 2:
+        depth = nx * (bx[0] if face == 0 else bx[3]) - nx * px
+    else:
+        depth = ny * (bx[1] if face == 2 else bx[4]) - ny * py
+    inside, u0, u1, z0, z1 = opening_rect(ua * px + ub * py + uc, pz, L, bx[5], par, fs)
+    if not inside:
+        return True
+    tout = max(depth, 0.0) / sn
+    u = ua * (px + sx * tout) + ub * (py + sy * tout) + uc
+    z = pz + sz * tout
+    return u0 <= u <= u1 and z0 <= z <= z1
+
+
+@njit(cache=True)
+def reveal_albedo(pz, px, py, fp, par, atlas, aoff, adim, lut):
+    """A reveal of a recessed opening: the wall's photo, else its render in its colour, a little darker
+    and stained."""
+    if par[P_WALL] >= 0.0:
+        return wall_photo(px + py, pz, fp, par, atlas, aoff, adim, lut)
+    fs = np.int64(par[P_SEED]) * 8 + 7
+    k = 0.9 * math.exp(0.25 * fbm2(px + py, pz, fs, 0.3, fp, 0.003, 0.85))
+    return par[P_R] * k, par[P_G] * k, par[P_B] * k
+
+
+@njit(cache=True)
+def trace_camera(ox, oy, oz, dx, dy, dz, boxes, bmat, bpar, sph, gmeta, cstart, citems):
+    """trace() of a camera ray, into the recessed openings of facades with relief: (t, kind, idx, face,
+    code, nface) with code and nface as relief() gives them (code 0, nface = face elsewhere)."""
+    t, kind, idx, face = trace(
+        ox, oy, oz, dx, dy, dz, boxes, sph, gmeta, cstart, citems, np.int64(0), np.int64(-1)
+    )
+    if kind == 2 and face < 4 and bmat[idx] == MAT_BUILDING and bpar[idx, P_RELIEF] > 0.0:
+        if bpar[idx, P_PHOTO] <= 0.0:
+            t, code, nface = relief(ox, oy, oz, dx, dy, dz, t, face, boxes[idx], bpar[idx])
+            return t, kind, idx, face, code, nface
+    return t, kind, idx, face, 0, face
+
+
 @njit(cache=True)
 def sky(dx, dy, dz, light, seed):
     """Sky radiance in direction d: horizon-zenith gradient, sun glow and soft clouds."""
@@ -1080,14 +1237,21 @@ def foliage_albedo(px, py, pz, fp, par, bush):
 
 
 @njit(cache=True)
-def sunlit(px, py, pz, nx, ny, nz, t, skip, boxes, sph, gmeta, cstart, citems, light):
-    """n . sun at the hit, 0 where the sun is below its surface or something shadows it."""
+def sunlit(px, py, pz, nx, ny, nz, t, skip, boxes, sph, gmeta, cstart, citems, light, recess, bpar):
+    """n . sun at the hit, 0 where the sun is below its surface or something shadows it; recess: the
+    facade (box * 8 + face) whose recessed opening holds the hit, -1 for none."""
     sx = light[L_SUN]
     sy = light[L_SUN + 1]
     sz = light[L_SUN + 2]
     ndl = nx * sx + ny * sy + nz * sz
     if ndl > 0.0 and light[L_SHADOW] > 0.0:
         e = 2e-3 + 1e-5 * t
+        if recess >= 0:
+            bi = recess // 8
+            if not out_of_recess(
+                px + nx * e, py + ny * e, pz + nz * e, recess % 8, boxes[bi], bpar[bi], sx, sy, sz
+            ):
+                return 0.0
         st = trace(
             px + nx * e, py + ny * e, pz + nz * e, sx, sy, sz, boxes, sph, gmeta, cstart, citems,
             np.int64(1), skip,
@@ -1103,8 +1267,8 @@ def radiance(
     zone, zmeta, lay, atlas, aoff, adim, lut, light, seed,
 ):  # fmt: skip
     """Linear RGB radiance along a camera ray o + t d (d = R (x, y, 1), so t is the z-depth)."""
-    t, kind, idx, face = trace(
-        ox, oy, oz, dx, dy, dz, boxes, sph, gmeta, cstart, citems, np.int64(0), np.int64(-1)
+    t, kind, idx, face, code, nface = trace_camera(
+        ox, oy, oz, dx, dy, dz, boxes, bmat, bpar, sph, gmeta, cstart, citems
     )
     if kind == 0:
         return sky(dx, dy, dz, light, seed)
@@ -1112,11 +1276,13 @@ def radiance(
     py = oy + t * dy
     pz = 0.0 if kind == 1 else oz + t * dz
     dn = math.sqrt(dx * dx + dy * dy + dz * dz)
-    nx, ny, nz = surface_normal(kind, face, idx, px, py, pz, sph)
+    nx, ny, nz = surface_normal(kind, nface, idx, px, py, pz, sph)
     cosi = abs(nx * dx + ny * dy + nz * dz) / dn
     fp = t / f / max(cosi, 0.05)
     if kind == 1:
         r, g, b = ground_albedo(px, py, fp, zone, zmeta, lay, seed)
+    elif code == 2:
+        r, g, b = reveal_albedo(pz, px, py, fp, bpar[idx], atlas, aoff, adim, lut)
     elif kind == 2:
         r, g, b = box_albedo(bmat[idx], face, px, py, pz, boxes[idx], bpar[idx], fp, atlas, aoff, adim, lut)
     else:
@@ -1126,7 +1292,8 @@ def radiance(
         nn = math.sqrt(nx * nx + ny * ny + nz * nz)
         nx, ny, nz = nx / nn, ny / nn, nz / nn
     skip = idx + boxes.shape[0] if kind == 3 else np.int64(-1)
-    ndl = sunlit(px, py, pz, nx, ny, nz, t, skip, boxes, sph, gmeta, cstart, citems, light)
+    recess = idx * 8 + face if code != 0 else np.int64(-1)
+    ndl = sunlit(px, py, pz, nx, ny, nz, t, skip, boxes, sph, gmeta, cstart, citems, light, recess, bpar)
     amb = 0.75 + 0.25 * nz
     lr = light[L_AMB] * amb + light[L_SUNC] * ndl
     lg = light[L_AMB + 1] * amb + light[L_SUNC + 1] * ndl
@@ -1180,7 +1347,7 @@ def render(
             dx = Rwc[0, 0] * xn + Rwc[0, 1] * yn + Rwc[0, 2]
             dy = Rwc[1, 0] * xn + Rwc[1, 1] * yn + Rwc[1, 2]
             dz = Rwc[2, 0] * xn + Rwc[2, 1] * yn + Rwc[2, 2]
-            t, kind, _, _ = trace(
-                C[0], C[1], C[2], dx, dy, dz, boxes, sph, gmeta, cstart, citems, np.int64(0), np.int64(-1)
+            t, kind, _, _, _, _ = trace_camera(
+                C[0], C[1], C[2], dx, dy, dz, boxes, bmat, bpar, sph, gmeta, cstart, citems
             )
             depth[i, j] = t if kind != 0 else 0.0

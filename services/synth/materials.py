@@ -65,7 +65,10 @@ P_PARAPET = 17  # parapet height above the top floor (m)
 P_AXIS = 18  # long axis of a car: 0 = x, 1 = y
 P_FR, P_FG, P_FB = 19, 20, 21  # window frame colour
 P_DOOR = 22  # door position on a facade, in [0, 1)
-NPAR = 24
+P_RELIEF = 23  # facade: depth (m) of the openings' reveals (windows, doors, shop windows); 0: flat
+P_WALL = 24  # facade: the wall photo (services.synth.walls crop index) tiled over it, or -1
+P_WALL_M = 25  # facade: metres per pixel of that wall photo
+NPAR = 26
 
 # lighting row (float64)
 L_SUN = 0  # 3: unit vector towards the sun (ENU)

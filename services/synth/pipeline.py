@@ -23,6 +23,7 @@ from .gt import DEPTH_FILE, depth_key, pixel_grid, visible_fraction, write_covis
 from .imaging import develop, encode_jpeg, list_photos, photo_atlas, srgb_to_linear_lut
 from .materials import L_AMB, L_CLOUD, L_HAZEC, L_HAZED, L_HOR, L_SHADOW, L_SUN, L_SUNC, L_ZEN, NLIGHT
 from .scene import Scene, make_scene
+from .walls import wall_atlas
 
 log = logging.getLogger("midview.synth")
 
@@ -58,22 +59,33 @@ class Renderer:
 
     def __init__(self, scene: Scene, photos: tuple, seed: int, grid_cell: float = 4.0):
         self.scene = scene
-        self.grid = scene.grid(grid_cell)
-        self.photos = photos
+        self.grid_cell = grid_cell
+        self._captures: dict[str, tuple[Scene, tuple]] = {}
+        self.photos = photos[:3]
         self.lut = srgb_to_linear_lut()
         self.seed = int(seed)
 
-    def __call__(self, view: View, cam: Camera, light: np.ndarray, ss: int) -> tuple[np.ndarray, np.ndarray]:
-        """-> linear RGB radiance (H, W, 3) float32 and z-depth (H, W) float32 (0 = sky)."""
+    def capture(self, name: str) -> tuple[Scene, tuple]:
+        """The scene as capture `name` saw it (Scene.for_capture) and its grid, made once."""
+        if name not in self._captures:
+            scene = self.scene.for_capture(name)
+            same = next((v for v in self._captures.values() if v[0] is scene), None)
+            self._captures[name] = same or (scene, scene.grid(self.grid_cell))
+        return self._captures[name]
+
+    def __call__(
+        self, view: View, cam: Camera, light: np.ndarray, ss: int, capture: str | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """-> linear RGB radiance (H, W, 3) float32 and z-depth (H, W) float32 (0 = sky) of the scene as
+        capture `capture` saw it (default: the view's image set)."""
         from .kernels import render
 
-        s = self.scene
+        s, (gmeta, cstart, citems) = self.capture(capture or view.image_set)
         fx, fy, cx, cy = cam.params
         h, w = cam.height, cam.width
         img = np.zeros((h, w, 3), np.float32)
         depth = np.zeros((h, w), np.float32)
         rows = np.concatenate([np.arange(k, h, 16) for k in range(16)]).astype(np.int64)
-        gmeta, cstart, citems = self.grid
         atlas, aoff, adim = self.photos
         render(
             np.ascontiguousarray(view.C, np.float64), np.ascontiguousarray(view.R, np.float64),
@@ -82,6 +94,29 @@ class Renderer:
             s.zone, s.zmeta, s.lay, atlas, aoff, adim, self.lut, light, self.seed, img, depth,
         )  # fmt: skip
         return img, depth
+
+
+def build_survey(
+    conf: dict, seed: int, textures_dir: Path | None
+) -> tuple[tuple, Scene, list[View], list[View], np.random.Generator]:
+    """The textures, scene and cameras of preset `conf` with `seed` (the same every time): (photos for
+    the kernels, the scene without the clutter in the ground cameras' way, aerial views, ground views,
+    the random stream of the POS noise). Facades take whole photos of textures_dir, or with a
+    `wall_photos` share in the preset's scene, brick walls cut from them (services.synth.walls)."""
+    r_scene, r_cam, r_pos = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
+    tex = Path(textures_dir) if textures_dir is not None else None
+    walls = None
+    if tex is not None and conf["scene"].get("wall_photos", 0.0) > 0.0:
+        photos = wall_atlas(tex)
+        walls = photos[3]
+    else:
+        photos = photo_atlas(tex)
+    photo = tex is not None and walls is None and conf["scene"].get("photo_facades", True)
+    scene = make_scene(conf["scene"], r_scene, photo=photo, walls=walls)
+    aerial = aerial_views(conf["aerial"], scene, r_cam)
+    ground = ground_views(conf["ground"], scene, r_cam)
+    scene = scene.drop_clutter_near(np.array([g.C for g in ground]), conf["render"]["clearance"])
+    return photos[:3], scene, aerial, ground, r_pos
 
 
 def _prepare(out_dir: Path, overwrite: bool) -> None:
@@ -246,12 +281,7 @@ def main(
         raise ValueError(f"supersample must be >= 1, not {ss}")
     with stage("synth", log):
         t0 = time.perf_counter()
-        r_scene, r_cam, r_pos = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
-        photos = photo_atlas(Path(textures_dir) if textures_dir is not None else None)
-        scene = make_scene(conf["scene"], r_scene, photo=textures_dir is not None)
-        aerial = aerial_views(conf["aerial"], scene, r_cam)
-        ground = ground_views(conf["ground"], scene, r_cam)
-        scene = scene.drop_clutter_near(np.array([g.C for g in ground]), conf["render"]["clearance"])
+        photos, scene, aerial, ground, r_pos = build_survey(conf, seed, textures_dir)
         cams = {"aerial": pinhole(conf["aerial"]), "ground": pinhole(conf["ground"])}
         lights = {k: light_array(conf["lighting"][k]) for k in cams}
         log.info(

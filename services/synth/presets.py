@@ -143,6 +143,27 @@ confs: dict[str, dict] = {
             "views": {"in": 0.5, "diag": 0.4, "along": 0.1},
         },
     ),
+    # modelled on a multi-platform survey like the ISPRS/EuroSDR benchmark's (the seed paper's data): a
+    # 5-head oblique flight (nadir and 45-degree obliques) at 50 m, aerial GSD about twice the ground's
+    # (3.6 cm nadir, 4-5 cm on the facades; the ground 1-2.5 cm at 7-20 m), facades with depth (openings
+    # recessed 12-30 cm behind their reveals, string courses, columns of balconies), half of the walls
+    # real brick cut from facade photos (with --textures; the rest procedural render, brick and panels,
+    # never whole street photos), sun from the south at noon for the flight and from the west in the
+    # afternoon for the ground walk with shadows cast by all, and a third of the parked cars there in
+    # one capture only
+    "isprs": _preset(
+        "isprs",
+        scene={
+            "height": [8.0, 20.0],
+            "relief": [0.12, 0.3],
+            "balconies": 0.35,
+            "photo_facades": False,
+            "wall_photos": 0.5,
+            "transient": 0.33,
+        },
+        aerial={"altitude": 50.0, "f": 1400.0, "grid": [3, 4]},
+        ground={"count": 20},
+    ),
     # 3 x 3 surveyed blocks: ~350 aerial + 150 ground images (long; for a many-core machine)
     "city": _preset(
         "city",

@@ -37,10 +37,13 @@ from .materials import (
     P_PARAPET,
     P_PHOTO,
     P_R2,
+    P_RELIEF,
     P_ROOF,
     P_SEED,
     P_SHOP,
     P_STYLE,
+    P_WALL,
+    P_WALL_M,
     P_WINH,
     P_WINW,
     P_Z0,
@@ -111,6 +114,21 @@ class Scene:
     lay: np.ndarray
     surveyed: np.ndarray
     blocks: list[dict] = field(default_factory=list)
+    # clutter groups there in one capture only ("aerial" or "ground"): cars parked or gone between them
+    transient: dict[int, str] = field(default_factory=dict)
+
+    def for_capture(self, capture: str) -> Scene:
+        """The scene as the capture `capture` saw it: without the transient groups of the other one
+        (this scene itself when it has none)."""
+        gone = [g for g, c in self.transient.items() if c != capture]
+        if not gone:
+            return self
+        kb, ks = ~np.isin(self.bgroup, gone), ~np.isin(self.sgroup, gone)
+        return Scene(
+            self.boxes[kb], self.bmat[kb], self.bpar[kb], self.bgroup[kb],
+            self.sph[ks], self.smat[ks], self.spar[ks], self.sgroup[ks],
+            self.zone, self.zmeta, self.lay, self.surveyed, self.blocks, {},
+        )  # fmt: skip
 
     def drop_clutter_near(self, points: np.ndarray, clearance: float) -> Scene:
         """Remove clutter groups with a primitive within `clearance` (bounding box) of any point (K, 3)."""
@@ -128,6 +146,7 @@ class Scene:
             self.boxes[kb], self.bmat[kb], self.bpar[kb], self.bgroup[kb],
             self.sph[ks], self.smat[ks], self.spar[ks], self.sgroup[ks],
             self.zone, self.zmeta, self.lay, self.surveyed, self.blocks,
+            {g: c for g, c in self.transient.items() if g not in bad},
         )  # fmt: skip
 
     def grid(self, cell: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -194,9 +213,11 @@ class Scene:
 class _Builder:
     """Collects primitives while the layout is generated."""
 
-    def __init__(self, rng: np.random.Generator, photo: bool):
+    def __init__(self, rng: np.random.Generator, photo: bool, walls: np.ndarray | None = None):
         self.rng = rng
         self.photo = photo
+        self.walls = walls  # metres per pixel of each wall photo (services.synth.walls), None: none
+        self.cars: list[int] = []  # the groups of the parked cars
         self.boxes: list[list[float]] = []
         self.bmat: list[int] = []
         self.bpar: list[np.ndarray] = []
@@ -222,6 +243,7 @@ class _Builder:
         p[0:3] = colour
         p[P_SEED] = self.seed()
         p[P_PHOTO] = -1.0
+        p[P_WALL] = -1.0
         for kw in values:
             for k, v in kw.items():
                 p[k] = v
@@ -278,6 +300,8 @@ class _Builder:
             common[k] = v
         par = self.par(colour, common, {P_GFLOOR: hg, P_Z0: 0.0, P_PHOTO: photo})
         self.box((x0, y0, 0.0), (x1, y1, H), MAT_BUILDING, par)
+        if conf.get("relief"):
+            self.facade_details(par, (x0, y0, x1, y1), n, conf)
         top = (x0, y0, x1, y1, H)
         if n >= 3 and rng.random() < 0.35:
             s = [_snap(rng.uniform(1.5, 4.0)) for _ in range(4)]
@@ -287,6 +311,8 @@ class _Builder:
                 p2 = rng.uniform(0.4, 0.9)
                 H2 = H + m * hf + p2
                 par2 = self.par(colour, common, {P_GFLOOR: 0.0, P_Z0: H, P_PARAPET: p2, P_PHOTO: photo})
+                for k in (P_RELIEF, P_WALL, P_WALL_M):  # the setback's walls as the building's
+                    par2[k] = par[k]
                 self.box((bx0, by0, H), (bx1, by1, H2), MAT_BUILDING, par2)
                 top = (bx0, by0, bx1, by1, H2)
         tx0, ty0, tx1, ty1, tz = top
@@ -319,12 +345,64 @@ class _Builder:
                 p,
             )
 
+    def facade_details(
+        self, par: np.ndarray, fp: tuple[float, float, float, float], floors: int, conf: dict
+    ) -> None:
+        """What stands out of a facade and what is set into it: openings recessed `relief` m (a range;
+        the kernels cut the reveals), a string course at the first floor, on some buildings columns of
+        balconies (slab and parapet) in front of the upper-floor windows, and on a `wall_photos` share of
+        them brick walls cut from real photos. Drawn from the building's own seed, so the layout of the
+        scene does not change with these details."""
+        rng = np.random.default_rng(int(par[P_SEED]) * 7919 + 13)
+        par[P_RELIEF] = rng.uniform(*conf["relief"])
+        if self.walls is not None and len(self.walls) and rng.random() < conf.get("wall_photos", 0.0):
+            k = int(rng.integers(len(self.walls)))
+            par[P_WALL], par[P_WALL_M] = k, self.walls[k]
+        x0, y0, x1, y1 = fp
+        hg, hf, bay = par[P_GFLOOR], par[P_FLOOR], par[P_BAY]
+        stone = self.par((0.55, 0.53, 0.5))
+        ledge = rng.uniform(0.12, 0.25)
+        faces = (  # (u axis start, u axis end, outward normal) of the four faces
+            ((x0, y0), (x1, y0), (0.0, -1.0)),
+            ((x1, y1), (x0, y1), (0.0, 1.0)),
+            ((x0, y1), (x0, y0), (-1.0, 0.0)),
+            ((x1, y0), (x1, y1), (1.0, 0.0)),
+        )
+        balconies = rng.random() < conf.get("balconies", 0.0)
+        for a, b, (nx, ny) in faces:
+            a, b = np.array(a), np.array(b)
+            self.slab(a, b, nx, ny, ledge, hg - 0.05, hg + 0.15, stone)  # string course
+            if not balconies or floors < 2:
+                continue
+            L = float(np.linalg.norm(b - a))
+            n = max(1, int(L / bay))
+            m = 0.5 * (L - n * bay)
+            for bi in range(n):
+                if rng.random() > 0.35:
+                    continue
+                c = m + (bi + 0.5) * bay
+                e = (b - a) / L
+                lo, hi = a + e * (c - 0.42 * bay), a + e * (c + 0.42 * bay)
+                for fl in range(1, floors):
+                    z = hg + fl * hf - 0.15
+                    self.slab(lo, hi, nx, ny, 1.1, z, z + 0.15, stone)  # the balcony's slab
+                    rail = (lo + np.array([nx, ny]) * 1.05, hi + np.array([nx, ny]) * 1.05)
+                    self.slab(*rail, nx, ny, 0.05, z + 0.15, z + 1.0, self.par((0.2, 0.2, 0.21)))
+
+    def slab(self, a, b, nx: float, ny: float, depth: float, z0: float, z1: float, par: np.ndarray) -> None:
+        """A box along the facade segment a-b standing `depth` out of it (outward normal (nx, ny))."""
+        p, q = np.asarray(a, float), np.asarray(b, float) + np.array([nx, ny]) * depth
+        lo = (min(p[0], q[0]), min(p[1], q[1]), z0)
+        hi = (max(p[0], q[0]), max(p[1], q[1]), z1)
+        self.box(lo, hi, MAT_KERB, par)
+
     def car(self, cx: float, cy: float, axis: int) -> None:
         rng = self.rng
         L, W = rng.uniform(3.9, 4.8), rng.uniform(1.7, 1.9)
         hb, hc = rng.uniform(0.9, 1.05), rng.uniform(0.4, 0.55)
         hx, hy = (L / 2, W / 2) if axis == 0 else (W / 2, L / 2)
         g = self.group()
+        self.cars.append(g)
         paint = self.colour(CARS, 0.06)
         par = self.par(paint, {P_STYLE: 0, P_AXIS: axis})
         self.box((cx - hx, cy - hy, 0.0), (cx + hx, cy + hy, hb), MAT_CAR, par, g)
@@ -476,8 +554,12 @@ def _street_furniture(b: _Builder, blk: dict, conf: dict, sw: float, rng: np.ran
             b.kiosk(p[0], p[1], axis)
 
 
-def make_scene(conf: dict, rng: np.random.Generator, photo: bool = False) -> Scene:
-    """Generate the block grid of `conf` (see presets.py, key "scene")."""
+def make_scene(
+    conf: dict, rng: np.random.Generator, photo: bool = False, walls: np.ndarray | None = None
+) -> Scene:
+    """Generate the block grid of `conf` (see presets.py, key "scene"); photo: facades tiled with whole
+    photos; walls: metres per pixel of the wall photos (services.synth.walls) that facade details may
+    use."""
     nbx, nby = conf["blocks"]
     ctx = conf["context"]
     ntx, nty = nbx + 2 * ctx, nby + 2 * ctx
@@ -493,7 +575,7 @@ def make_scene(conf: dict, rng: np.random.Generator, photo: bool = False) -> Sce
         j0, j1 = int(round((y0 - Y0) / ZONE_RES)), int(round((y1 - Y0) / ZONE_RES))
         zone[max(j0, 0) : max(j1, 0), max(i0, 0) : max(i1, 0)] = z
 
-    b = _Builder(rng, photo)
+    b = _Builder(rng, photo, walls)
     blocks = []
     for bj in range(nty):
         for bi in range(ntx):
@@ -526,4 +608,19 @@ def make_scene(conf: dict, rng: np.random.Generator, photo: bool = False) -> Sce
         lay=np.array([X0, Y0, Px, Py, Rw, ntx, nty, sw], np.float64),
         surveyed=surveyed,
         blocks=blocks,
+        transient=_transient_cars(b.cars, conf.get("transient", 0.0), rng),
     )
+
+
+def _transient_cars(cars: list[int], share: float, rng: np.random.Generator) -> dict[int, str]:
+    """A `share` of the parked cars there in one capture only (half of them the flight's, half the
+    ground walk's): drawn after the layout, so that it does not change with the share."""
+    if share <= 0.0 or not cars:
+        return {}
+    draw = np.random.default_rng(rng.integers(2**31))
+    out = {}
+    for g in cars:
+        x = draw.random()
+        if x < share:
+            out[g] = "aerial" if x < share / 2 else "ground"
+    return out

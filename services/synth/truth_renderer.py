@@ -45,11 +45,8 @@ class GroundTruthRenderer:
         frame: Any = None,
         supersample: int = 1,
     ):
-        from services.synth.cameras import aerial_views, ground_views
-        from services.synth.imaging import photo_atlas
         from services.synth.pipeline import Renderer as SynthRenderer
-        from services.synth.pipeline import light_array
-        from services.synth.scene import make_scene
+        from services.synth.pipeline import build_survey, light_array
 
         self.scene_dir = Path(scene_dir)
         meta = json.loads((self.scene_dir / "gt" / "scene.json").read_text())
@@ -58,13 +55,7 @@ class GroundTruthRenderer:
         tex_dir = Path(tex) if tex else None
         if tex_dir is not None and not tex_dir.is_dir():
             raise FileNotFoundError(f"the scene's textures {tex_dir} are missing: cannot re-render it")
-        # the same random streams, in the same order, as services.synth.pipeline.main
-        r_scene, r_cam, _ = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
-        photos = photo_atlas(tex_dir)
-        scene = make_scene(conf["scene"], r_scene, photo=tex_dir is not None)
-        aerial = aerial_views(conf["aerial"], scene, r_cam)
-        ground = ground_views(conf["ground"], scene, r_cam)
-        scene = scene.drop_clutter_near(np.array([g.C for g in ground]), conf["render"]["clearance"])
+        photos, scene, aerial, ground, _ = build_survey(conf, seed, tex_dir)
         self._check_views(aerial + ground)
         self.renderer = SynthRenderer(scene, photos, seed, conf["render"]["grid_cell"])
         self.light = light_array(conf["lighting"]["aerial"])
