@@ -1,6 +1,6 @@
 """Direct-matching baselines (SIFT, ALIKED+LightGlue) on a rendered synthetic survey.
 
-    python bench/baselines.py [--preset small] [--seed 0] [--scene DIR] [--textures DIR] [--out DIR]
+    python bench/baselines.py [--preset isprs] [--seed 0] [--scene DIR] [--textures DIR] [--out DIR]
 
 Renders the preset once (cached under runs/bench/scene-<preset>-seed<seed>), builds POS pairs, runs
 both baselines on them with fresh feature caches (timings), evaluates the match files against the
@@ -119,7 +119,7 @@ def print_timings(results: list[dict], console) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--preset", default="small")
+    ap.add_argument("--preset", default="isprs", help="synthetic preset (small for continuity)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scene", type=Path, help="a rendered scene folder (default: rendered and cached)")
     ap.add_argument("--textures", type=Path, help=f"facade photos (default: {DEFAULT_TEXTURES} if present)")

@@ -1,6 +1,6 @@
-"""midview against the direct baselines on a rendered synthetic survey (default: the `small` preset).
+"""midview against the direct baselines on a rendered synthetic survey (default: the `isprs` preset).
 
-    python bench/method.py [--preset small] [--seed 0] [--renderers gt,splat]
+    python bench/method.py [--preset isprs] [--seed 0] [--renderers gt,splat]
                            [--planners paper,ground-aware,both] [--views 2] [--max-keypoints 1024]
                            [--matchers aliked-lightglue,sift] [--sift-keypoints 8192]
                            [--splat-steps 1500] [--splat-set KEY=VALUE] [--view-set KEY=VALUE]
@@ -155,7 +155,7 @@ def direct_same_budget(scene: Path, base: pipeline.Job, out: Path) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--preset", default="small")
+    ap.add_argument("--preset", default="isprs", help="synthetic preset (small for continuity)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--scene", type=Path, help="a rendered scene folder (default: runs/bench/scene-<preset>-seed<seed>)"

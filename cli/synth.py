@@ -12,7 +12,13 @@ def synth(
     preset: str = typer.Option(
         "small",
         help="tiny (tests, seconds), small (a block, minutes), small-walk (small with 40 ground images in"
-        " sequence, 4 m apart) or city",
+        " sequence, 4 m apart), isprs (a 5-head oblique flight and facades with depth, real brick and"
+        " transient cars, as hard as real surveys), isprs-flat (isprs with flat facades) or city",
+    ),
+    overrides: list[str] = typer.Option(
+        [],
+        "--set",
+        help="KEY=VALUE entry of the preset (dotted, repeatable): --set scene.wall_photos=0",
     ),
     seed: int = typer.Option(0, help="random seed: same preset and seed give identical files"),
     textures: Path | None = typer.Option(
@@ -30,6 +36,13 @@ def synth(
     if preset not in confs:
         typer.secho(f"unknown preset {preset!r}; choose one of {', '.join(confs)}", fg="red", err=True)
         raise typer.Exit(2)
+    from services.conf import merge_conf, parse_overrides
+
+    try:
+        conf = merge_conf(confs[preset], parse_overrides(overrides, confs[preset]))
+    except ValueError as e:
+        typer.secho(f"--set: {e}", fg="red", err=True)
+        raise typer.Exit(2) from None
     if textures is not None and not textures.is_dir():
         typer.secho(f"texture folder {textures} does not exist", fg="red", err=True)
         raise typer.Exit(2)
@@ -51,6 +64,6 @@ def synth(
 
     from services.synth import main, read_covisible
 
-    main(confs[preset], out, seed=seed, textures_dir=textures, supersample=supersample, overwrite=force)
+    main(conf, out, seed=seed, textures_dir=textures, supersample=supersample, overwrite=force)
     n_images = sum(1 for s in ("aerial", "ground") for _ in (out / "images" / s).glob("*.jpg"))
     typer.echo(f"{out}: {n_images} images, {len(read_covisible(out))} co-visible aerial-ground pairs")

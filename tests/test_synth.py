@@ -211,7 +211,11 @@ def test_cli_rejects_bad_input(tiny, tmp_path):
     assert r.exit_code == 2 and "does not exist" in r.output
     r = runner.invoke(app, [str(tiny), "--preset", "tiny"])
     assert r.exit_code == 2 and "not empty" in r.output
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    r = runner.invoke(app, [str(tmp_path / "c"), "--preset", "tiny", "--set", "scene.walls=0"])
+    assert r.exit_code == 2 and "unknown key 'walls'" in r.output
+    r = runner.invoke(app, [str(tmp_path / "c"), "--preset", "tiny", "--set", "scene.relief=deep"])
+    assert r.exit_code == 2 and "--set" in r.output
+    assert not any((tmp_path / d).exists() for d in "abc")
 
 
 def test_pose_helpers_agree_with_depth(tiny):

@@ -164,6 +164,14 @@ confs: dict[str, dict] = {
         aerial={"altitude": 50.0, "f": 1400.0, "grid": [3, 4]},
         ground={"count": 20},
     ),
+    # `isprs` with flat facades: no relief, no balconies, procedural walls, no transient cars; the same
+    # flight, ground walk and light (a measurement of what the facades' properties do)
+    "isprs-flat": _preset(
+        "isprs-flat",
+        scene={"height": [8.0, 20.0], "photo_facades": False},
+        aerial={"altitude": 50.0, "f": 1400.0, "grid": [3, 4]},
+        ground={"count": 20},
+    ),
     # 3 x 3 surveyed blocks: ~350 aerial + 150 ground images (long; for a many-core machine)
     "city": _preset(
         "city",
