@@ -652,3 +652,17 @@ def test_the_job_option_sets_the_trainers_time_budget(tmp_path):
         JobOptions(splat_time_budget_s=0)
     spec = next(s for s in option_specs() if s["name"] == "splat_time_budget_s")
     assert spec["type"] == "number | null" and spec["minimum"] == 1 and spec["default"] is None
+
+
+def test_the_strategy_leaves_a_model_of_no_gaussians_alone():
+    """A block whose training pruned every Gaussian: the densification step has nothing to refine and
+    says so instead of failing on empty statistics (the service's train_blocks failed on one)."""
+    from services.splat.strategy import DefaultStrategy
+
+    strategy = DefaultStrategy(refine_start_iter=0, refine_every=1)
+    params = {"means": torch.zeros(0, 3), "opacities": torch.zeros(0), "scales": torch.zeros(0, 3)}
+    means2d = torch.zeros(0, 2, requires_grad=True)
+    means2d.sum().backward()
+    info = {"means2d": means2d, "radii": torch.zeros(0, 2), "width": 64, "height": 48, "n_cameras": 1}
+    state = strategy.initialize_state()
+    assert strategy.step_post_backward(params, {}, state, 5, info) == {}

@@ -404,9 +404,7 @@ def train_block(
     folder = Path(out) / block_id
     folder.mkdir(parents=True, exist_ok=True)
     if block.reason:
-        doc = {"id": block_id, "trained": False, "reason": block.reason, "views": block.views}
-        (folder / "block.json").write_text(json.dumps(doc, indent=1))
-        return doc
+        return _untrained(folder, block, block.reason)
     digest = block_digest(plan, block, Path(model_path))
     finished = _finished(folder, digest)
     if finished is not None:
@@ -415,10 +413,7 @@ def train_block(
     model = load_model(model_path)
     own, rest = split_model(model, block, block.margin)
     if not len(own["means"]):  # nothing to refine (densification grows only from existing Gaussians)
-        reason = "the whole-scene 3DGS has no Gaussian in this block"
-        doc = {"id": block_id, "trained": False, "reason": reason, "views": block.views, "digest": digest}
-        (folder / "block.json").write_text(json.dumps(doc, indent=1))
-        return doc
+        return _untrained(folder, block, "the whole-scene 3DGS has no Gaussian in this block", digest)
     rec = pycolmap.Reconstruction(str(sparse))
     views = crop_views(block, rec, Path(images))
     rest = reaching(rest, views)
@@ -427,13 +422,19 @@ def train_block(
     trainer = Trainer(conf, data, folder, backend, init=own, frozen=rest)
     before = trainer_psnr(trainer, own)
     chunk = max(1, int(trainer.conf["ckpt_every"]))
-    while trainer.step < trainer.total_steps:
+
+    def emptied() -> bool:
+        return trainer.splats is not None and not len(trainer.splats["means"])
+
+    while trainer.step < trainer.total_steps and not emptied():
         trainer.train(resume=True, stop_after=min(trainer.step + chunk, trainer.total_steps), progress=False)
         if report is not None:
             report(
                 trainer.step / trainer.total_steps,
                 f"block {block_id}: step {trainer.step}/{trainer.total_steps}",
             )
+    if emptied():  # pruned to nothing: its cell keeps the whole-scene model
+        return _untrained(folder, block, f"its training pruned every Gaussian (step {trainer.step})", digest)
     save_ply(trainer.splats, folder / "point_cloud.ply")
     doc = {
         "id": block_id,
@@ -458,6 +459,16 @@ def train_block(
         block_id, doc["crops"], doc["gaussians_before"], doc["gaussians"], before, doc["psnr_after"],
         doc["seconds"],
     )  # fmt: skip
+    return doc
+
+
+def _untrained(folder: Path, block, reason: str, digest: str | None = None) -> dict:
+    """block.json of a block left to the whole-scene model (its views render from that), and why."""
+    (folder / "point_cloud.ply").unlink(missing_ok=True)
+    doc = {"id": block.id, "trained": False, "reason": reason, "views": block.views}
+    if digest is not None:
+        doc["digest"] = digest
+    (folder / "block.json").write_text(json.dumps(doc, indent=1))
     return doc
 
 

@@ -149,7 +149,7 @@ class DefaultStrategy:
     def step_post_backward(self, params, optimizers, state: dict, step: int, info: dict) -> dict[str, int]:
         """Accumulate statistics, then grow / prune / reset when due. Returns counts of what changed."""
         out: dict[str, int] = {}
-        if step >= self.refine_stop_iter:
+        if step >= self.refine_stop_iter or len(params["means"]) == 0:  # nothing left to refine
             return out
         self._update_state(params, state, info)
         if (
