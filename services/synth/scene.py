@@ -120,14 +120,17 @@ class Scene:
     def for_capture(self, capture: str) -> Scene:
         """The scene as the capture `capture` saw it: without the transient groups of the other one
         (this scene itself when it has none)."""
-        gone = [g for g, c in self.transient.items() if c != capture]
-        if not gone:
-            return self
-        kb, ks = ~np.isin(self.bgroup, gone), ~np.isin(self.sgroup, gone)
+        gone = {g for g, c in self.transient.items() if c != capture}
+        return self.without_groups(gone) if gone else self
+
+    def without_groups(self, groups: set[int]) -> Scene:
+        """This scene without the primitives of the clutter groups `groups`."""
+        kb, ks = ~np.isin(self.bgroup, list(groups)), ~np.isin(self.sgroup, list(groups))
         return Scene(
             self.boxes[kb], self.bmat[kb], self.bpar[kb], self.bgroup[kb],
             self.sph[ks], self.smat[ks], self.spar[ks], self.sgroup[ks],
-            self.zone, self.zmeta, self.lay, self.surveyed, self.blocks, {},
+            self.zone, self.zmeta, self.lay, self.surveyed, self.blocks,
+            {g: c for g, c in self.transient.items() if g not in groups},
         )  # fmt: skip
 
     def drop_clutter_near(self, points: np.ndarray, clearance: float) -> Scene:
@@ -140,14 +143,7 @@ class Scene:
         for p in points:
             near = np.all((lo <= p) & (p <= hi), axis=1) & (groups >= 0)
             bad.update(int(g) for g in groups[near])
-        kb = ~np.isin(self.bgroup, list(bad))
-        ks = ~np.isin(self.sgroup, list(bad))
-        return Scene(
-            self.boxes[kb], self.bmat[kb], self.bpar[kb], self.bgroup[kb],
-            self.sph[ks], self.smat[ks], self.spar[ks], self.sgroup[ks],
-            self.zone, self.zmeta, self.lay, self.surveyed, self.blocks,
-            {g: c for g, c in self.transient.items() if g not in bad},
-        )  # fmt: skip
+        return self.without_groups(bad)
 
     def grid(self, cell: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Uniform xy grid over all primitives: gmeta (6 + nx*ny,) = (x0, y0, cell, nx, ny, zmax, then
