@@ -215,7 +215,9 @@ def run(
 # -- demo ------------------------------------------------------------------------------------------
 def demo(
     out: Path = typer.Argument(Path("runs/demo"), help="output folder (scene/, job/, report.html)"),
-    preset: str = typer.Option("small", help="synthetic preset: tiny, small, small-walk"),
+    preset: str = typer.Option(
+        demo_mod.DEMO_PRESET, help="synthetic preset: isprs (as hard as real ones), small, small-walk, tiny"
+    ),
     seed: int = typer.Option(0, help="random seed of the scene and the job"),
     textures: Path | None = typer.Option(
         None, help=f"facade photos (default: {demo_mod.DEFAULT_TEXTURES} if present)"
