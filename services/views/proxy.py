@@ -1,0 +1,236 @@
+"""A piecewise-planar proxy of the aerial model: the geometry that colours the views from the sources.
+
+A 3DGS trained on the CPU gets the scene's depth at the intermediate views only roughly right (a median
+error of 3-8%, worse on uniform roofs and on facades the aerial images see at grazing angles), and a view
+coloured from the full-resolution aerial images through that depth shifts their texture. Streets, roofs
+and facades are planes, and the aerial model's sparse points on them are accurate to centimetres. This
+finds those planes (sequential RANSAC with local samples, each plane's extent an occupancy grid of its
+points, every connected part filled to its convex hull) and ray casts them: the nearest occupied plane
+along each pixel's ray. `combine` keeps the 3DGS's depth where it sees something clearly in front of the
+planes (trees, cars, lamp posts), and where no plane is hit.
+
+    proxy = PlaneProxy.from_model("sfm/sparse")
+    depth = combine(proxy.depth(camera, pose), depth_3dgs)
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pycolmap
+from scipy.spatial import cKDTree
+
+from services.colmap_model import Camera, Pose
+
+logger = logging.getLogger("midview.views.proxy")
+
+confs: dict[str, dict[str, Any]] = {
+    "default": {
+        "min_track_length": 3,  # sparse points seen by fewer images are left out
+        "inlier_m": 0.15,  # a point within this distance of a plane is on it
+        "sample_radius_m": 3.0,  # a hypothesis: a point and two others within this distance
+        "min_inliers": 25,
+        "max_planes": 400,
+        "hypotheses": 300,  # per plane found
+        "cell_m": 1.0,  # the occupancy grid of a plane's points
+        "close_cells": 5,  # holes of up to this many cells between its points are closed
+        "occluder": 0.15,  # the 3DGS's depth wins where it is this much (relative) in front of the plane
+    },
+}
+
+
+@dataclass
+class Plane:
+    """n . x + d = 0 (unit normal n), its in-plane basis (e1, e2) from origin o, and its occupied cells
+    (occ[row, col] of cells `cell` metres wide from the corner lo of the grid, in (e1, e2) coordinates)."""
+
+    n: np.ndarray
+    d: float
+    o: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    lo: np.ndarray
+    cell: float
+    occ: np.ndarray
+    corners: np.ndarray  # (4, 3) world corners of the grid (for culling)
+    num_points: int
+
+
+def _hypotheses(P: np.ndarray, alive: np.ndarray, tree: cKDTree, conf: dict, rng) -> np.ndarray:
+    """(M, 4) planes (n, d) through a random live point and two live points within sample_radius_m."""
+    live = np.nonzero(alive)[0]
+    seeds = rng.choice(live, min(int(conf["hypotheses"]), len(live)), replace=False)
+    out = []
+    for i, nb in zip(seeds, tree.query_ball_point(P[seeds], float(conf["sample_radius_m"])), strict=True):
+        nb = [j for j in nb if alive[j] and j != i]
+        if len(nb) < 2:
+            continue
+        j, k = rng.choice(nb, 2, replace=False)
+        n = np.cross(P[j] - P[i], P[k] - P[i])
+        norm = np.linalg.norm(n)
+        if norm > 1e-3:
+            n = n / norm
+            out.append([*n, -n @ P[i]])
+    return np.asarray(out, float).reshape(-1, 4)
+
+
+def _refine(P: np.ndarray, live: np.ndarray, plane: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares refit of a plane (4,) to its inliers among the points `live`, twice: (plane, inliers)."""
+    Q = P[live]
+    inl = live[np.abs(Q @ plane[:3] + plane[3]) < tol]
+    for _ in range(2):
+        if len(inl) < 3:
+            break
+        c = P[inl].mean(0)
+        n = np.linalg.svd(P[inl] - c)[2][2]
+        plane = np.array([*n, -n @ c])
+        inl = live[np.abs(Q @ n + plane[3]) < tol]
+    return plane, inl
+
+
+def detect_planes(
+    P: np.ndarray, conf: dict | None = None, seed: int = 0
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Planes of the points P (N, 3) by sequential RANSAC with local samples: [(plane (4,), inlier
+    indices)], best supported first; each point belongs to at most one plane."""
+    c = {**confs["default"], **(conf or {})}
+    rng = np.random.default_rng(seed)
+    tree = cKDTree(P)
+    alive = np.ones(len(P), bool)
+    tol, min_in = float(c["inlier_m"]), int(c["min_inliers"])
+    planes: list[tuple[np.ndarray, np.ndarray]] = []
+    misses = 0
+    while alive.sum() >= min_in and len(planes) < int(c["max_planes"]) and misses < 5:
+        hyp = _hypotheses(P, alive, tree, c, rng)
+        live = np.nonzero(alive)[0]
+        if len(hyp) == 0:
+            misses += 1
+            continue
+        counts = (np.abs(P[live] @ hyp[:, :3].T + hyp[:, 3]) < tol).sum(0)
+        best = int(np.argmax(counts))
+        plane, inl = _refine(P, live, hyp[best], tol)
+        if counts[best] < min_in or len(inl) < min_in:
+            misses += 1
+            continue
+        planes.append((plane, inl))
+        alive[inl] = False
+        misses = 0
+    return planes
+
+
+def _occupancy(uv: np.ndarray, cell: float, close: int) -> tuple[np.ndarray, np.ndarray]:
+    """The occupied cells of in-plane points uv (N, 2): (grid corner lo (2,), bool occ (rows, cols)),
+    holes up to `close` cells closed and each connected part filled to its convex hull."""
+    pad = close + 1  # the closing must not reach the grid's border (there it would not erode back)
+    lo = uv.min(0) - pad * cell
+    ij = np.floor((uv - lo) / cell).astype(int)
+    cols, rows = ij.max(0) + pad + 1
+    occ = np.zeros((rows, cols), np.uint8)
+    occ[ij[:, 1], ij[:, 0]] = 1
+    occ = cv2.morphologyEx(occ, cv2.MORPH_CLOSE, np.ones((close, close), np.uint8))
+    n, comp = cv2.connectedComponents(occ, connectivity=8)
+    filled = np.zeros_like(occ)
+    for k in range(1, n):
+        ys, xs = np.nonzero(comp == k)
+        hull = cv2.convexHull(np.stack([xs, ys], 1).astype(np.int32))
+        cv2.fillConvexPoly(filled, hull, 1)
+    return lo, filled.astype(bool)
+
+
+def make_plane(P: np.ndarray, plane: np.ndarray, conf: dict) -> Plane:
+    """A Plane of its parameters (4,) and its points P (N, 3)."""
+    n, d = plane[:3] / np.linalg.norm(plane[:3]), float(plane[3])
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    m = P.mean(0)
+    o = m - (n @ m + d) * n
+    uv = np.stack([(P - o) @ e1, (P - o) @ e2], 1)
+    cell = float(conf["cell_m"])
+    lo, occ = _occupancy(uv, cell, int(conf["close_cells"]))
+    ext = np.array([[0, 0], [occ.shape[1], 0], [0, occ.shape[0]], [occ.shape[1], occ.shape[0]]]) * cell + lo
+    corners = o + ext[:, :1] * e1 + ext[:, 1:] * e2
+    return Plane(n, d, o, e1, e2, lo, cell, occ, corners, len(P))
+
+
+class PlaneProxy:
+    """The planes of an aerial model, ray cast at any pinhole camera of its frame."""
+
+    def __init__(self, planes: list[Plane], conf: dict | None = None):
+        self.planes = planes
+        self.conf = {**confs["default"], **(conf or {})}
+
+    @classmethod
+    def from_points(cls, P: np.ndarray, conf: dict | None = None) -> PlaneProxy:
+        c = {**confs["default"], **(conf or {})}
+        found = detect_planes(P, c)
+        return cls([make_plane(P[inl], plane, c) for plane, inl in found], c)
+
+    @classmethod
+    def from_model(cls, sparse_dir: str | Path, conf: dict | None = None) -> PlaneProxy:
+        """The planes of a COLMAP model's points seen by at least min_track_length images."""
+        c = {**confs["default"], **(conf or {})}
+        rec = pycolmap.Reconstruction(str(sparse_dir))
+        P = np.array(
+            [p.xyz for p in rec.points3D.values() if p.track.length() >= int(c["min_track_length"])], float
+        ).reshape(-1, 3)
+        proxy = cls.from_points(P, c) if len(P) >= int(c["min_inliers"]) else cls([], c)
+        covered = sum(p.num_points for p in proxy.planes)
+        logger.info("plane proxy: %d planes hold %d of %d sparse points", len(proxy.planes), covered, len(P))
+        return proxy
+
+    def _cast(self, pl: Plane, camera: Camera, pose: Pose, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rays through pixel centres uv (N, 2) against one plane: (indices of the rays that meet it in
+        an occupied cell, their z-depths)."""
+        K = camera.K
+        rays = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))], 1)
+        rays_w = rays @ pose.R  # world direction per unit z-depth
+        C = pose.center
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -(pl.n @ C + pl.d) / (rays_w @ pl.n)
+        idx = np.nonzero(t > 0.1)[0]
+        Y = C + rays_w[idx] * t[idx, None] - pl.o
+        ij = np.floor((np.stack([Y @ pl.e1, Y @ pl.e2], 1) - pl.lo) / pl.cell).astype(int)
+        ok = (ij >= 0).all(1) & (ij[:, 0] < pl.occ.shape[1]) & (ij[:, 1] < pl.occ.shape[0])
+        hit = np.zeros(len(idx), bool)
+        hit[ok] = pl.occ[ij[ok, 1], ij[ok, 0]]
+        return idx[hit], t[idx[hit]]
+
+    def depth(self, camera: Camera, pose: Pose, coarse: int = 8) -> np.ndarray:
+        """z-depth (H, W) float32 of the nearest occupied plane along each pixel's ray, 0 where none.
+        Each plane is cast first at every `coarse`-th pixel, then at the pixels around its coarse hits."""
+        H, W = camera.height, camera.width
+        hc, wc = -(-H // coarse), -(-W // coarse)
+        vc, uc = np.mgrid[0:hc, 0:wc]
+        centres = np.stack([(uc.ravel() + 0.5) * coarse, (vc.ravel() + 0.5) * coarse], 1).astype(float)
+        best = np.full(H * W, np.inf)
+        kernel = np.ones((3, 3), np.uint8)
+        for pl in self.planes:
+            idx, _ = self._cast(pl, camera, pose, centres)
+            if len(idx) == 0:
+                continue
+            mask = np.zeros(hc * wc, np.uint8)
+            mask[idx] = 1
+            mask = cv2.dilate(mask.reshape(hc, wc), kernel)
+            fine = cv2.resize(mask, (wc * coarse, hc * coarse), interpolation=cv2.INTER_NEAREST)[:H, :W]
+            pix = np.flatnonzero(fine)
+            uv = np.stack([pix % W + 0.5, pix // W + 0.5], 1)
+            hit, t = self._cast(pl, camera, pose, uv)
+            near = t < best[pix[hit]]
+            best[pix[hit][near]] = t[near]
+        best[~np.isfinite(best)] = 0.0
+        return best.reshape(H, W).astype(np.float32)
+
+
+def combine(plane_depth: np.ndarray, depth: np.ndarray, occluder: float = 0.15) -> np.ndarray:
+    """The planes' depth where a plane is hit, unless the other depth (the 3DGS's) sees something more
+    than `occluder` (relative) in front of it; the other depth elsewhere."""
+    out = np.where(plane_depth > 0, plane_depth, depth)
+    front = (depth > 0) & (plane_depth > 0) & (depth < plane_depth * (1.0 - occluder))
+    return np.where(front, depth, out).astype(np.float32)

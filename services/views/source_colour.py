@@ -1,0 +1,266 @@
+"""Colour of a rendered view from the full-resolution aerial images, through the view's depth.
+
+A 3DGS trained on 400-640 px images on the CPU smears its texture at the intermediate views, which stand
+two to four times closer to the facades than the aerial cameras. The source images hold that texture at
+their full resolution. For each pixel of a view this takes its depth (the plane proxy's where it has one,
+services.views.proxy, else the 3DGS's), lifts it to a 3D point, finds the aerial images that see that
+point (the point lies in front of the camera, inside its image and no nearer surface of the 3DGS's depth
+at that camera hides it) and samples the colour of the best of them (the smallest angle between the
+view's ray and the source's ray, the finest ground sampling distance), at the image-pyramid level that
+matches the view's pixel size. The two best sources must agree on a point's colour; pixels where they do
+not, or that no source sees, keep the 3DGS's colour. This is unstructured lumigraph rendering with one
+source per pixel (Buehler et al. 2001).
+
+    src = SourceImages("sfm/sparse", "images")          # an aerial COLMAP model and its image folder
+    rgb, depth, stats = src.colour(camera, pose, depth, rgb_3dgs, depth_fn)
+
+A render pixel coloured this way shows what the chosen aerial image shows along its own ray: where the
+depth is off, the texture shifts in the view, but a match of the view with a ground image still stands
+for a match with that aerial image's pixel, which is what the reducer transfers.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pycolmap
+
+from services.colmap_model import Camera, Pose
+
+logger = logging.getLogger("midview.views.source")
+
+confs: dict[str, dict[str, Any]] = {
+    "default": {
+        "visibility_rel": 0.05,  # a source sees a point when its 3DGS depth there is within 5% (+ abs)
+        "visibility_abs_m": 0.3,
+        "depth_width": 480,  # width of the sources' 3DGS depth maps (visibility only)
+        "resolution_weight_deg": 10.0,  # penalty per doubling of the source's ground sampling distance
+        "max_angle_deg": 75.0,  # a source more than this off the view's ray is not used
+        # the two best sources must agree on a point's colour (mean absolute difference over 7x7 pixels
+        # below this many grey levels): where the 3DGS's depth is off they see different surfaces
+        "consistency": 12.0,
+        "cache_mb": 1500,  # source image pyramids held in memory (uint8)
+    },
+}
+
+DepthFn = Callable[[Camera, Pose], np.ndarray]
+
+
+def _two_best(n: int, scored: list[tuple[int, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """The best and second best (lowest penalty) source of each of n points, -1 where none, from
+    (source index, point indices, penalties) per source."""
+    best = np.full(n, np.inf, np.float32)
+    second = np.full(n, np.inf, np.float32)
+    best_i = np.full(n, -1, np.int32)
+    second_i = np.full(n, -1, np.int32)
+    for si, idx, pen in scored:
+        win = pen < best[idx]
+        mid = ~win & (pen < second[idx])
+        w, m = idx[win], idx[mid]
+        second[w], second_i[w] = best[w], best_i[w]
+        best[w], best_i[w] = pen[win], si
+        second[m], second_i[m] = pen[mid], si
+    return best_i, second_i
+
+
+def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray, cols: int = 4096) -> np.ndarray:
+    """Bilinear samples (N, C) of img at OpenCV pixel coordinates (N,) (remap wants 2D maps of at most
+    32767 columns: the points go in rows of `cols`)."""
+    n = len(x)
+    rows = max(1, -(-n // cols))
+    mx = np.full(rows * cols, -1e4, np.float32)  # padding samples fall outside: constant, unused
+    my = np.full(rows * cols, -1e4, np.float32)
+    mx[:n], my[:n] = x, y
+    out = cv2.remap(
+        img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    return out.reshape(rows * cols, -1)[:n]
+
+
+class SourceImages:
+    """The aerial images of a COLMAP model (full resolution, lazily loaded) and their 3DGS depth maps."""
+
+    def __init__(self, rec_dir: str | Path, image_dir: str | Path, conf: dict | None = None):
+        self.conf = {**confs["default"], **(conf or {})}
+        self.image_dir = Path(image_dir)
+        rec = pycolmap.Reconstruction(str(rec_dir))
+        self._rec = rec  # the cameras below are references into it
+        self.sources: list[dict] = []
+        for img in sorted(rec.images.values(), key=lambda i: i.name):
+            if not img.has_pose:
+                continue
+            m = img.cam_from_world().matrix()
+            cam = img.camera
+            pinhole = None
+            extra = np.asarray(cam.params)[list(cam.extra_params_idxs())]
+            if not np.any(extra):  # no distortion (PINHOLE, or a radial model with k = 0)
+                K = cam.calibration_matrix()
+                pinhole = (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+            self.sources.append(
+                {
+                    "name": img.name,
+                    "camera": cam,
+                    "pose": Pose(m[:, :3].copy(), m[:, 3].copy()),
+                    "pinhole": pinhole,
+                }
+            )
+        self._pyramids: OrderedDict[str, list[np.ndarray]] = OrderedDict()
+        self._depths: dict[str, tuple[np.ndarray, float]] = {}
+
+    # -- cached inputs ---------------------------------------------------------------------------
+    def pyramid(self, name: str) -> list[np.ndarray]:
+        """RGB uint8 levels of a source image: full resolution, then halved until 256 px."""
+        if name in self._pyramids:
+            self._pyramids.move_to_end(name)
+            return self._pyramids[name]
+        bgr = cv2.imread(str(self.image_dir / name), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise FileNotFoundError(f"source image {self.image_dir / name} is missing or unreadable")
+        levels = [cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)]
+        while min(levels[-1].shape[:2]) > 256:
+            levels.append(cv2.pyrDown(levels[-1]))
+        self._pyramids[name] = levels
+        size = lambda: sum(lv.nbytes for ls in self._pyramids.values() for lv in ls)  # noqa: E731
+        while len(self._pyramids) > 1 and size() > float(self.conf["cache_mb"]) * 1e6:
+            self._pyramids.popitem(last=False)
+        return levels
+
+    def depth(self, src: dict, depth_fn: DepthFn) -> tuple[np.ndarray, float]:
+        """(3DGS z-depth at the source camera, reduced; its scale against the full image)."""
+        if src["name"] not in self._depths:
+            cam = src["camera"]
+            s = min(1.0, float(self.conf["depth_width"]) / cam.width)
+            K = cam.calibration_matrix()
+            small = Camera(
+                "PINHOLE",
+                max(1, round(cam.width * s)),
+                max(1, round(cam.height * s)),
+                [K[0, 0] * s, K[1, 1] * s, K[0, 2] * s, K[1, 2] * s],
+            )
+            self._depths[src["name"]] = (np.asarray(depth_fn(small, src["pose"]), np.float32), s)
+        return self._depths[src["name"]]
+
+    @staticmethod
+    def _inside(src: dict, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(indices of the points X (N, 3) in front of the source and inside its image, their pixels in
+        COLMAP convention, their z-depths)."""
+        sp: Pose = src["pose"]
+        cam = src["camera"]
+        Xc = X @ sp.R.T.astype(X.dtype) + sp.t.astype(X.dtype)
+        z = Xc[:, 2]
+        idx = np.nonzero(z > 1e-3)[0]
+        if len(idx) == 0:
+            return idx, np.zeros((0, 2)), np.zeros(0)
+        if src["pinhole"] is not None:  # no distortion: K alone (pycolmap's projection is slower)
+            fx, fy, cx, cy = src["pinhole"]
+            q = Xc[idx]
+            uv = np.stack([fx * q[:, 0] / q[:, 2] + cx, fy * q[:, 1] / q[:, 2] + cy], 1)
+        else:
+            uv = cam.img_from_cam(Xc[idx])
+        ok = np.all(np.isfinite(uv), axis=1)
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height - 1)
+        return idx[ok], uv[ok], z[idx[ok]]
+
+    @staticmethod
+    def _consistent(
+        first: np.ndarray, second: np.ndarray, vi: np.ndarray, ui: np.ndarray, shape: tuple, limit: float
+    ) -> np.ndarray:
+        """Which points (N,) the two best sources see alike: the mean absolute difference of their
+        colours (N, 3; NaN where no second source sees the point) over a 7x7 window below `limit` grey
+        levels (windows with no second source fail)."""
+        diff = np.zeros(shape, np.float32)
+        valid = np.zeros(shape, np.float32)
+        d = np.abs(first - second).mean(axis=1)
+        ok = np.isfinite(d)
+        diff[vi[ok], ui[ok]] = d[ok]
+        valid[vi[ok], ui[ok]] = 1.0
+        num = cv2.boxFilter(diff, -1, (7, 7), normalize=False)
+        den = cv2.boxFilter(valid, -1, (7, 7), normalize=False)
+        mean = np.where(den > 0, num / np.maximum(den, 1.0), np.inf)
+        return ok & (mean[vi, ui] <= limit)
+
+    # -- colour ----------------------------------------------------------------------------------
+    def _score(
+        self, src: dict, X: np.ndarray, ray_v: np.ndarray, depth_fn: DepthFn
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The points X (N, 3) the source sees (in its image, within max_angle_deg of the view's rays
+        ray_v (N, 3), not hidden in its 3DGS depth): (indices, pixels, penalties, metres per pixel)."""
+        c = self.conf
+        idx, uv, z = self._inside(src, X)
+        if len(idx) == 0:
+            return idx, uv, z, z
+        ray_s = X[idx] - src["pose"].center
+        cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx]) / np.linalg.norm(ray_s, axis=1)
+        dmap, s = self.depth(src, depth_fn)
+        du = np.clip((uv[:, 0] * s).astype(int), 0, dmap.shape[1] - 1)
+        dv = np.clip((uv[:, 1] * s).astype(int), 0, dmap.shape[0] - 1)
+        ds = dmap[dv, du]
+        ok = cosang >= np.cos(np.radians(float(c["max_angle_deg"])))
+        ok &= (ds > 0) & (z <= ds * (1.0 + float(c["visibility_rel"])) + float(c["visibility_abs_m"]))
+        idx, uv, z, cosang = idx[ok], uv[ok], z[ok], cosang[ok]
+        gsd = z / float(src["camera"].mean_focal_length())
+        angle = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+        penalty = angle + float(c["resolution_weight_deg"]) * np.log2(np.maximum(gsd, 1e-6))
+        return idx, uv, penalty, gsd
+
+    def colour(
+        self,
+        camera: Camera,
+        pose: Pose,
+        depth: np.ndarray,
+        fallback: np.ndarray,
+        depth_fn: DepthFn,
+    ) -> tuple[np.ndarray, np.ndarray, dict]:
+        """RGB uint8 (H, W, 3) of the view: each pixel with depth > 0 from its best visible source,
+        the others (and those no source sees) from `fallback` (uint8 (H, W, 3)). Returns the image, the
+        depth it used and figures (fraction of pixels coloured from sources, sources used)."""
+        H, W = depth.shape
+        if not (depth > 0).any():
+            return fallback, depth, {"source_fraction": 0.0, "sources_used": 0}
+        vi, ui = np.nonzero(depth > 0)
+        uv_v = np.stack([ui + 0.5, vi + 0.5], 1).astype(np.float64)  # pixel centres, COLMAP convention
+        X = pose.unproject(camera.K, uv_v, depth[vi, ui].astype(float)).astype(np.float32)
+        ray_v = X - pose.center.astype(np.float32)
+        ray_v /= np.linalg.norm(ray_v, axis=1, keepdims=True)
+        gsd_v = depth[vi, ui] / camera.K[0, 0]  # metres per view pixel (at the point, along the axis)
+        n = len(X)
+        # the candidates: sources that are the best or second best for some of a sparse sample of the points
+        step = max(1, n // 4000)
+        probe = [
+            (si, *self._score(src, X[::step], ray_v[::step], depth_fn)[::2])
+            for si, src in enumerate(self.sources)
+        ]
+        chosen = sorted({int(i) for i in np.concatenate(_two_best(len(X[::step]), probe)) if i >= 0})
+        scored = {si: self._score(self.sources[si], X, ray_v, depth_fn) for si in chosen}
+        best_i, second_i = _two_best(n, [(si, idx, pen) for si, (idx, _, pen, _) in scored.items()])
+        scored = {si: (idx, uv, gsd / gsd_v[idx]) for si, (idx, uv, _, gsd) in scored.items()}
+        first_rgb = np.zeros((n, 3), np.float32)
+        second_rgb = np.full((n, 3), np.nan, np.float32)
+        used = 0
+        for si, (idx, uv, ratio) in scored.items():
+            take, take2 = best_i[idx] == si, second_i[idx] == si
+            if not (take.any() or take2.any()):
+                continue
+            used += int(take.any())
+            keep = take | take2
+            idx, uv, ratio, take = idx[keep], uv[keep], ratio[keep], take[keep]
+            levels = self.pyramid(self.sources[si]["name"])
+            # source pixels per view pixel: 1/ratio; sample the level where that is about 1
+            lvl = int(np.clip(np.floor(np.log2(max(np.median(1.0 / ratio), 1.0))), 0, len(levels) - 1))
+            scale = 1.0 / (2**lvl)  # COLMAP pixel coordinates -> OpenCV's at that level
+            val = _sample(levels[lvl], uv[:, 0] * scale - 0.5, uv[:, 1] * scale - 0.5).astype(np.float32)
+            first_rgb[idx[take]] = val[take]
+            second_rgb[idx[~take]] = val[~take]
+        has = best_i >= 0
+        limit = self.conf["consistency"]
+        if limit is not None:  # the two best sources must agree where the point is: else the depth is off
+            has &= self._consistent(first_rgb, second_rgb, vi, ui, (H, W), float(limit))
+        out = fallback.copy()
+        out[vi[has], ui[has]] = np.clip(np.rint(first_rgb[has]), 0, 255).astype(np.uint8)
+        return out, depth, {"source_fraction": float(has.sum() / (H * W)), "sources_used": used}

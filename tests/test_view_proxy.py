@@ -1,0 +1,113 @@
+"""The piecewise-planar proxy of the aerial model (services.views.proxy): planes found in noisy points
+of a box building on a ground plane, their extent, ray casting with occlusion, and how the 3DGS's depth
+is kept in front of them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.colmap_model import Camera
+from services.splat.render import look_at
+from services.views.proxy import PlaneProxy, combine, detect_planes
+
+BOX = (np.array([-5.0, -4.0, 0.0]), np.array([5.0, 4.0, 8.0]))  # a 10 x 8 x 8 m building
+
+
+def _box_scene(rng, noise=0.03, density=6.0) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) on a 40 x 40 m ground (outside the footprint), the box's roof and its four walls,
+    `density` per square metre with Gaussian noise; and each point's face (0 ground, 1 roof, 2-5 walls)."""
+    lo, hi = BOX
+
+    def face(n_pts, f):
+        return rng.uniform(0, 1, (n_pts, 2)), f
+
+    pts, labels = [], []
+    g = rng.uniform(-20, 20, (int(1600 * density / 4), 2))
+    g = g[~((g[:, 0] > lo[0]) & (g[:, 0] < hi[0]) & (g[:, 1] > lo[1]) & (g[:, 1] < hi[1]))]
+    pts.append(np.c_[g, np.zeros(len(g))])
+    labels.append(np.zeros(len(g), int))
+    sx, sy, sz = hi - lo
+    faces = [
+        (lambda a, b: np.c_[lo[0] + a * sx, lo[1] + b * sy, np.full(len(a), hi[2])], sx * sy),
+        (lambda a, b: np.c_[np.full(len(a), lo[0]), lo[1] + a * sy, b * sz], sy * sz),
+        (lambda a, b: np.c_[np.full(len(a), hi[0]), lo[1] + a * sy, b * sz], sy * sz),
+        (lambda a, b: np.c_[lo[0] + a * sx, np.full(len(a), lo[1]), b * sz], sx * sz),
+        (lambda a, b: np.c_[lo[0] + a * sx, np.full(len(a), hi[1]), b * sz], sx * sz),
+    ]
+    for i, (make, area) in enumerate(faces, start=1):
+        ab = rng.uniform(0, 1, (int(area * density), 2))
+        pts.append(make(ab[:, 0], ab[:, 1]))
+        labels.append(np.full(len(ab), i))
+    P = np.concatenate(pts)
+    return P + rng.normal(0, noise, P.shape), np.concatenate(labels)
+
+
+def _box_depth(camera: Camera, pose) -> np.ndarray:
+    """The true z-depth of the box and the ground plane (ray against the six faces, nearest hit)."""
+    H, W = camera.height, camera.width
+    K = camera.K
+    v, u = np.mgrid[0:H, 0:W]
+    rays = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], np.ones((H, W))], -1)
+    d = rays.reshape(-1, 3) @ pose.R
+    C = pose.center
+    lo, hi = BOX
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - C) / d, (hi - C) / d
+        tmin = np.nanmax(np.minimum(t1, t2), axis=1)
+        tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+        t_box = np.where((tmax >= tmin) & (tmin > 0), tmin, np.inf)
+        t_ground = np.where(d[:, 2] < 0, -C[2] / d[:, 2], np.inf)
+    t = np.minimum(t_box, t_ground)
+    return np.where(np.isfinite(t), t, 0.0).reshape(H, W)
+
+
+def test_the_planes_of_a_box_building_and_the_ground_are_found():
+    rng = np.random.default_rng(0)
+    P, face = _box_scene(rng)
+    planes = detect_planes(P, {"inlier_m": 0.12})
+    assert len(planes) >= 6
+    normals = {0: [0, 0, 1], 1: [0, 0, 1], 2: [1, 0, 0], 3: [1, 0, 0], 4: [0, 1, 0], 5: [0, 1, 0]}
+    for f, n_true in normals.items():
+        # the plane holding most of this face's points has the face's normal and holds little else
+        best = max(planes, key=lambda p: (face[p[1]] == f).sum())
+        plane, inl = best
+        assert abs(abs(plane[:3] @ n_true) - 1) < 2e-3, (f, plane)
+        assert (face[inl] == f).sum() > 0.9 * (face == f).sum(), f
+        assert (face[inl] == f).mean() > 0.9, f
+
+
+def test_the_proxy_depth_is_the_scene_depth_where_the_planes_hold_points():
+    rng = np.random.default_rng(1)
+    P, _ = _box_scene(rng)
+    proxy = PlaneProxy.from_points(P, {"inlier_m": 0.12})
+    cam = Camera("PINHOLE", 320, 240, [260.0, 260.0, 160.0, 120.0])
+    pose = look_at(np.array([-14.0, -18.0, 12.0]), np.array([0.0, 0.0, 3.0]))  # a low oblique view
+    depth = proxy.depth(cam, pose)
+    truth = _box_depth(cam, pose)
+    seen = truth > 0
+    # the ground beyond its points' extent is not hit; where both have depth they agree to centimetres,
+    # the box occludes the ground behind it
+    both = seen & (depth > 0)
+    assert both.mean() > 0.6 * seen.mean()
+    rel = np.abs(depth[both] - truth[both]) / truth[both]
+    assert np.median(rel) < 0.005 and np.quantile(rel, 0.95) < 0.03, np.quantile(rel, [0.5, 0.95])
+
+
+def test_a_plane_without_points_there_is_not_hit():
+    rng = np.random.default_rng(2)
+    g = np.c_[rng.uniform(0, 10, (600, 2)), rng.normal(0, 0.02, 600)]  # ground points on [0, 10]^2 only
+    proxy = PlaneProxy.from_points(g)
+    assert len(proxy.planes) == 1
+    cam = Camera("PINHOLE", 200, 200, [200.0, 200.0, 100.0, 100.0])
+    over = proxy.depth(cam, look_at(np.array([5.0, 5.0, 20.0]), np.array([5.0, 5.01, 0.0])))
+    away = proxy.depth(cam, look_at(np.array([60.0, 60.0, 20.0]), np.array([60.0, 60.01, 0.0])))
+    assert (over[80:120, 80:120] == pytest.approx(20.0, abs=0.1)) and (away == 0).all()
+
+
+def test_the_3dgs_depth_is_kept_in_front_of_the_planes_and_where_none_is_hit():
+    planes = np.array([[10.0, 10.0, 0.0, 10.0]], np.float32)
+    splat = np.array([[9.5, 6.0, 7.0, 0.0]], np.float32)
+    # a plane hit: the planes' depth (9.5 is near it), unless the 3DGS sees something 15% in front (6.0);
+    # no plane: the 3DGS's (7.0); neither: 0
+    assert combine(planes, splat, 0.15).tolist() == [[10.0, 6.0, 7.0, 10.0]]
