@@ -160,7 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--scene", type=Path, help="a rendered scene folder (default: runs/bench/scene-<preset>-seed<seed>)"
     )
-    ap.add_argument("--renderers", default="gt,splat", help="comma-separated: gt, splat")
+    ap.add_argument(
+        "--renderers",
+        default="gt,splat",
+        help="comma-separated: gt (perfect views), splat (the product: the 3DGS, views coloured from the"
+        " aerial images), 3dgs (the 3DGS's own colour)",
+    )
     ap.add_argument(
         "--planners", default="paper,ground-aware,both", help="comma-separated: paper, ground-aware, both"
     )
@@ -202,6 +207,13 @@ def main(argv: list[str] | None = None) -> int:
         help="matching conf entry (services.matching.views confs), repeatable:"
         " --match-set render_max_keypoints=2048",
     )
+    ap.add_argument(
+        "--render-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="views' rendering conf entry (services.views.rendering), repeatable: --render-set colour=splat",
+    )
     ap.add_argument("--torch-threads", type=int, default=1)
     ap.add_argument("--no-sfm", action="store_true", help="skip the combined reconstructions")
     ap.add_argument("--adopt-sfm", type=Path, help="an aerial SfM output folder to use instead of running it")
@@ -237,7 +249,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     # the aerial SfM of services.sfm.confs["sift-fast"] (SIFT at 1024 px, exhaustive matching)
     settings = {
-        **pipeline.parse_settings_overrides(args.splat_set, args.view_set, args.match_set),
+        **pipeline.parse_settings_overrides(
+            args.splat_set, args.view_set, args.match_set, rendering=args.render_set
+        ),
         "torch_threads": args.torch_threads,
         "scene": str(scene),
         "sfm": {"output": "sfm-sift-fast", "features": {"max_image_size": 1024, "max_num_features": 4096}},
@@ -249,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         out / "base",
         scene,
         {**options, "stages": ["aerial_sfm", "train_splat"]},
-        {**settings, "renderer": "splat" if "splat" in renderers else "gt"},
+        {**settings, "renderer": "splat" if {"splat", "3dgs"} & set(renderers) else "gt"},
     )
     if args.adopt_sfm and not pipeline.is_done(base, "aerial_sfm"):
         dst = base.dir("sfm")
@@ -288,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
                         "block_steps": args.block_steps,
                         "stages": ["aerial_sfm", "train_splat", *stages],
                     },
-                    {**settings, "renderer": r},
+                    renderer_settings(settings, r),
                 )
                 link_base(job, base)
                 if p == "both":
@@ -439,9 +453,8 @@ def method_key(label: str) -> tuple[str, str | None]:
     """The figures' name of a row ("midview splat both" -> ("midview", "both")), planner or None."""
     if label.startswith("midview"):
         parts = label.split()
-        return ("perfect-views" if parts[1] == "gt" else "midview") + "".join(
-            f"-{x}" for x in parts[3:]
-        ), parts[2]
+        kind = {"gt": "perfect-views", "3dgs": "midview-3dgs-colour"}.get(parts[1], "midview")
+        return kind + "".join(f"-{x}" for x in parts[3:]), parts[2]
     if label.startswith("direct SIFT"):
         return "direct-sift", None
     if label.startswith("direct ALIKED+LightGlue (2048"):
@@ -495,10 +508,17 @@ def results_doc(rows: list[dict], sfm_rows: dict, timings: dict, argv: list[str]
     }
 
 
+def renderer_settings(settings: dict, renderer: str) -> dict:
+    """A job's settings for a bench renderer: "3dgs" is the splat renderer with the 3DGS's own colour."""
+    if renderer != "3dgs":
+        return {**settings, "renderer": renderer}
+    return {**settings, "renderer": "splat", "views": {**settings.get("views", {}), "colour": "splat"}}
+
+
 def config_name(renderer: str, planner: str, matcher: str, block_steps: int = 0) -> str:
     """The job folder of a configuration: RENDERER-PLANNER, with -sift for the SIFT matcher and -blocksN
     for the splat renderer with blocks trained N steps."""
-    blocks = f"-blocks{block_steps}" if block_steps and renderer == "splat" else ""
+    blocks = f"-blocks{block_steps}" if block_steps and renderer in ("splat", "3dgs") else ""
     return f"{renderer}-{planner}" + ("" if matcher == "aliked-lightglue" else f"-{matcher}") + blocks
 
 

@@ -130,6 +130,12 @@ def run(
         help="matching conf entry (services.matching.views, the --matcher's), repeatable:"
         " --match-set render_detection_threshold=-1",
     ),
+    render_set: list[str] = typer.Option(
+        [],
+        "--render-set",
+        metavar="KEY=VALUE",
+        help="views' rendering conf entry (services.views.rendering), repeatable: --render-set colour=splat",
+    ),
 ) -> None:
     """Register ground images with aerial images through rendered intermediate views: aerial SfM, 3DGS,
     view planning and rendering, matching, transfer (OUT/transfer/matches.h5, database.db,
@@ -147,9 +153,9 @@ def run(
     if renderer == "gt" and scene is None:
         _fail("--renderer gt needs --scene (a synthetic scene folder)")
     try:
-        overrides = pipeline.parse_settings_overrides(splat_set, view_set, match_set, matcher)
+        overrides = pipeline.parse_settings_overrides(splat_set, view_set, match_set, matcher, render_set)
     except ValueError as e:
-        _fail(f"--splat-set / --view-set / --match-set: {e}")
+        _fail(f"--splat-set / --view-set / --match-set / --render-set: {e}")
     try:
         job = pipeline.Job.create(
             out,

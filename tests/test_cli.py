@@ -117,8 +117,9 @@ def test_run_of_a_stage_before_its_inputs_exist_says_which_stages_to_run(tiny_sc
 
 
 def test_run_takes_splat_view_and_match_overrides_and_rejects_bad_ones(tiny_scene, tmp_path):
-    """`midview run --splat-set/--view-set/--match-set KEY=VALUE`: kept in job.json and used by the stages'
-    confs; an unknown key or a value of the wrong kind exits 2 with the reason before a job folder is made."""
+    """`midview run --splat-set/--view-set/--match-set/--render-set KEY=VALUE`: kept in job.json and used
+    by the stages' confs; an unknown key or a value of the wrong kind exits 2 with the reason before a job
+    folder is made."""
     from services.pipeline import Job
 
     s = tiny_scene
@@ -132,6 +133,8 @@ def test_run_takes_splat_view_and_match_overrides_and_rejects_bad_ones(tiny_scen
         (["--view-set", "paper.height=0.4"], "unknown key 'height'"),
         (["--match-set", "render_keypoints=2048"], "unknown key 'render_keypoints'"),
         (["--match-set", "matcher.filter_threshold=low"], "expected a number"),
+        (["--render-set", "colour=sharp"], "colour must be source or splat"),
+        (["--render-set", "proxy.cells=2"], "unknown key 'cells'"),
     ):
         result = runner.invoke(app, ["run", *args, str(bad), *cams, *item])
         assert result.exit_code == 2, result.output
@@ -141,6 +144,7 @@ def test_run_takes_splat_view_and_match_overrides_and_rejects_bad_ones(tiny_scen
     sets = ["--splat-set", "strategy.max_gaussians=120000"]
     sets += ["--view-set", "paper.extra_height_fractions=[0.7]"]
     sets += ["--match-set", "render_detection_threshold=-1", "--match-set", "matcher.filter_threshold=0.05"]
+    sets += ["--render-set", "colour=splat", "--render-set", "proxy.cell_m=2"]
     result = runner.invoke(app, ["run", *args, str(out), *cams, "--stages", "splat_all", *sets])
     assert result.exit_code == 2  # nothing before splat_all has run: the job is written, no stage run
     job = Job.load(out)
@@ -149,6 +153,7 @@ def test_run_takes_splat_view_and_match_overrides_and_rejects_bad_ones(tiny_scen
     mconf = job.match_conf()
     assert mconf["render_detection_threshold"] == -1 and mconf["matcher"]["filter_threshold"] == 0.05
     assert job.splat_conf()["max_width"] == 400
+    assert job.render_conf()["colour"] == "splat" and job.render_conf()["proxy"]["cell_m"] == 2.0
 
 
 def test_demo_rejects_a_negative_time_budget(tmp_path):

@@ -33,22 +33,31 @@ DEFAULT_SETTINGS: dict[str, Any] = {
 
 
 def parse_settings_overrides(
-    splat: list[str], viewpoints: list[str], matching: list[str], matcher: str = "aliked-lightglue"
+    splat: list[str],
+    viewpoints: list[str],
+    matching: list[str],
+    matcher: str = "aliked-lightglue",
+    rendering: list[str] = (),
 ) -> dict[str, dict]:
-    """`KEY=VALUE` strings of the 3DGS, viewpoint and matching (the matcher's) confs -> the job settings
-    that override them (services.conf.parse_overrides: ValueError with the reason)."""
+    """`KEY=VALUE` strings of the 3DGS, viewpoint, matching (the matcher's) and rendering confs -> the
+    job settings that override them (services.conf.parse_overrides: ValueError with the reason)."""
     from services.conf import parse_overrides
     from services.matching.views import confs as match_confs
     from services.splat import confs as splat_confs
     from services.splat.train import check_conf
     from services.views import confs as view_confs
+    from services.views import rendering as view_rendering
 
+    render_over = parse_overrides(list(rendering), view_rendering.confs["default"])
+    if render_over.get("colour", "source") not in ("source", "splat"):
+        raise ValueError(f"colour must be source or splat, not {render_over['colour']!r}")
     splat_over = parse_overrides(splat, splat_confs["fast"])
     check_conf(merge_conf(splat_confs["fast"], splat_over))
     return {
         "splat": splat_over,
         "viewpoints": parse_overrides(viewpoints, view_confs["both"]),
         "matching": parse_overrides(matching, match_confs.get(matcher, match_confs["aliked-lightglue"])),
+        "views": render_over,
     }
 
 
@@ -331,9 +340,10 @@ class Job:
         )
 
     # renderer
-    def renderer(self, blocks: bool = True):
+    def renderer(self, blocks: bool = True, colour: bool = True):
         """The views' renderer: the trained blocks over the whole-scene 3DGS when the job has them (and
-        `blocks`), else the whole-scene 3DGS, or the ground truth (renderer "gt")."""
+        `blocks`), else the whole-scene 3DGS, or the ground truth (renderer "gt"); with `colour` and the
+        views' conf colour "source", its views coloured from the aerial images (SourceRenderer)."""
         from services import views
 
         if self.settings["renderer"] == "gt":
@@ -342,15 +352,31 @@ class Job:
             return views.GroundTruthRenderer(self.settings["scene"], self.sfm.sparse)
         if self.settings["renderer"] != "splat":
             raise ValueError(f"unknown renderer {self.settings['renderer']!r} (splat, gt)")
-        min_alpha = self.settings["views"].get("min_alpha", 0.5)
+        conf = self.render_conf()
+        min_alpha = conf["min_alpha"]
         if blocks and self.uses_blocks and (self.blocks.report).is_file():
             from services.views import BlockRenderer
 
-            return BlockRenderer(self.splat.dir, self.blocks.dir, self.settings["splat_backend"], min_alpha)
-        return views.SplatRenderer(self.splat.dir, self.settings["splat_backend"], min_alpha)
+            base = BlockRenderer(self.splat.dir, self.blocks.dir, self.settings["splat_backend"], min_alpha)
+        else:
+            base = views.SplatRenderer(self.splat.dir, self.settings["splat_backend"], min_alpha)
+        if colour and conf["colour"] == "source":
+            return views.SourceRenderer(base, self.sfm.sparse, self.image_dir, conf)
+        return base
 
-    def renderer_inputs(self, blocks: bool = True) -> list[Path]:
+    def render_conf(self) -> dict:
+        """services.views.rendering's conf with the job's overrides (settings "views")."""
+        from services.views import rendering
+
+        return merge_conf(rendering.confs["default"], self.settings["views"])
+
+    def renderer_inputs(self, blocks: bool = True, colour: bool = True) -> list[Path]:
         if self.settings["renderer"] == "gt":
             return [Path(self.settings["scene"]) / "gt" / "scene.json"]
         own = [self.blocks.plan, self.blocks.report]
-        return [self.splat.model, *(own if blocks and self.uses_blocks else [])]
+        sources = [self.sfm.sparse / "points3D.bin", self.sfm.sparse / "images.bin"]
+        return [
+            self.splat.model,
+            *(own if blocks and self.uses_blocks else []),
+            *(sources if colour and self.render_conf()["colour"] == "source" else []),
+        ]

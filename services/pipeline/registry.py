@@ -148,7 +148,7 @@ DECLARATIONS: tuple[StageDef, ...] = (
             j.sfm.georef,
             j.pos,
             j.cameras,
-            *j.renderer_inputs(blocks=False),
+            *j.renderer_inputs(blocks=False, colour=False),
         ],
         outputs=lambda j: [j.plan.views],
         dirs=("plan",),
@@ -164,7 +164,7 @@ DECLARATIONS: tuple[StageDef, ...] = (
             "backend": j.settings["splat_backend"],
         },
         inputs=lambda j: (
-            [j.plan.views, j.sfm.sparse, *j.renderer_inputs(blocks=False)]
+            [j.plan.views, j.sfm.sparse, *j.renderer_inputs(blocks=False, colour=False)]
             + ([] if j.settings["renderer"] == "gt" else [images_of(j, "aerial")])
         ),
         outputs=lambda j: [j.blocks.plan, j.blocks.report],

@@ -162,7 +162,7 @@ def run_plan_views(job: Job, report) -> dict:
     from services.views import planning, rendering
 
     report(0.0, "planning views")
-    r = job.renderer(blocks=False)
+    r = job.renderer(blocks=False, colour=False)
     try:
         path = planning.main(
             job.viewpoint_conf(),

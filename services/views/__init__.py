@@ -32,12 +32,14 @@ target is made a candidate of at least one view.
     path = planning.main(planning.confs["ground-aware"], "sfm/sparse", "scene/pos.csv",
                          "scene/cameras.json", "sfm/georef.json", "plan/views.json")
 
-Rendering them (`rendering`): a colour PNG and a z-depth per view from a `Renderer` (the 3DGS, or the
-ground truth of a synthetic scene for tests and upper bounds).
+Rendering them (`rendering`): a colour PNG and a z-depth per view from a `Renderer` (the 3DGS, its views
+coloured from the full-resolution aerial images through a piecewise-planar proxy of the aerial model
+(`proxy`, `source_colour`), or the ground truth of a synthetic scene for tests and upper bounds).
 
 Modules: `confs`, `rays` (the paper's viewpoint, rays against points and planes, depth probes),
 `scene` (what the planners know), `specs` (`ViewSpec`, candidates, views.json), `paper` and
-`ground_aware` (the planners), `planning` (`main` of plan_views), `rendering` (`main` of render_views).
+`ground_aware` (the planners), `planning` (`main` of plan_views), `rendering` (`main` of render_views),
+`proxy` (the planes of the aerial model), `source_colour` (colour from the aerial images).
 """
 
 from services.geometry import angle_deg, look_at, optical_axis, pitch_deg
@@ -56,6 +58,7 @@ from services.views.rendering import (
     BlockRenderer,
     GroundTruthRenderer,
     Renderer,
+    SourceRenderer,
     SplatRenderer,
     depth_fn,
     make_renderer,
@@ -70,6 +73,7 @@ __all__ = [
     "NoViews",
     "Renderer",
     "Scene",
+    "SourceRenderer",
     "SplatRenderer",
     "ViewSpec",
     "angle_deg",
