@@ -47,6 +47,13 @@ def _plane_depth(camera: Camera, pose: Pose) -> np.ndarray:
     return z.reshape(camera.height, camera.width).astype(np.float32)
 
 
+def _view(width: int, height: int) -> tuple[Camera, Pose]:
+    """The view camera of the tests (`width` x `height`, 0.95 focal length per pixel of width)."""
+    f = 0.95 * width
+    cam = Camera("PINHOLE", width, height, [f, f, width / 2, height / 2])
+    return cam, look_at(np.array([-2.0, -9.0, 12.0]), np.array([0.0, 0.0, 0.0]))
+
+
 @pytest.fixture
 def plane_survey(tmp_path):
     tex = _texture()
@@ -67,8 +74,7 @@ def plane_survey(tmp_path):
 def test_a_view_coloured_through_the_true_depth_is_the_scene_seen_from_it(plane_survey):
     root, tex, cam, poses = plane_survey
     src = SourceImages(root / "sparse", root / "images")
-    view_cam = Camera("PINHOLE", 400, 300, [380.0, 380.0, 200.0, 150.0])
-    view = look_at(np.array([-2.0, -9.0, 12.0]), np.array([0.0, 0.0, 0.0]))
+    view_cam, view = _view(400, 300)
     depth = _plane_depth(view_cam, view)
     fallback = np.zeros((300, 400, 3), np.uint8)
     rgb, _, stats = src.colour(view_cam, view, depth, fallback, lambda c, p: _plane_depth(c, p))
@@ -87,8 +93,7 @@ def test_a_view_coloured_through_the_true_depth_is_the_scene_seen_from_it(plane_
 def test_hidden_points_and_points_no_source_sees_keep_the_fallback(plane_survey):
     root, _, cam, poses = plane_survey
     src = SourceImages(root / "sparse", root / "images")
-    view_cam = Camera("PINHOLE", 200, 150, [190.0, 190.0, 100.0, 75.0])
-    view = look_at(np.array([-2.0, -9.0, 12.0]), np.array([0.0, 0.0, 0.0]))
+    view_cam, view = _view(200, 150)
     depth = _plane_depth(view_cam, view)
     fallback = np.full((150, 200, 3), 7, np.uint8)
     # every source's depth says a surface stands 5 m in front of the plane: nothing is visible
@@ -108,8 +113,7 @@ def test_a_missing_source_image_is_a_clear_error(plane_survey):
     (root / "images" / "aerial" / "A.jpg").unlink()
     (root / "images" / "aerial" / "B.jpg").unlink()
     src = SourceImages(root / "sparse", root / "images")
-    view_cam = Camera("PINHOLE", 200, 150, [190.0, 190.0, 100.0, 75.0])
-    view = look_at(np.array([-2.0, -9.0, 12.0]), np.array([0.0, 0.0, 0.0]))
+    view_cam, view = _view(200, 150)
     with pytest.raises(FileNotFoundError, match="A.jpg|B.jpg"):
         black = np.zeros((150, 200, 3), np.uint8)
         src.colour(view_cam, view, _plane_depth(view_cam, view), black, _plane_depth)

@@ -173,10 +173,11 @@ class PlaneProxy:
         return cls([make_plane(P[inl], plane, c) for plane, inl in found], c)
 
     @classmethod
-    def from_model(cls, sparse_dir: str | Path, conf: dict | None = None) -> PlaneProxy:
-        """The planes of a COLMAP model's points seen by at least min_track_length images."""
+    def from_model(cls, model: str | Path | pycolmap.Reconstruction, conf: dict | None = None) -> PlaneProxy:
+        """The planes of a COLMAP model's (a folder or a loaded Reconstruction) points seen by at least
+        min_track_length images."""
         c = {**confs["default"], **(conf or {})}
-        rec = pycolmap.Reconstruction(str(sparse_dir))
+        rec = model if isinstance(model, pycolmap.Reconstruction) else pycolmap.Reconstruction(str(model))
         P = np.array(
             [p.xyz for p in rec.points3D.values() if p.track.length() >= int(c["min_track_length"])], float
         ).reshape(-1, 3)
@@ -188,10 +189,8 @@ class PlaneProxy:
     def _cast(self, pl: Plane, camera: Camera, pose: Pose, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rays through pixel centres uv (N, 2) against one plane: (indices of the rays that meet it in
         an occupied cell, their z-depths)."""
-        K = camera.K
-        rays = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))], 1)
-        rays_w = rays @ pose.R  # world direction per unit z-depth
         C = pose.center
+        rays_w = pose.unproject(camera.K, uv, np.ones(len(uv))) - C  # world direction per unit z-depth
         with np.errstate(divide="ignore", invalid="ignore"):
             t = -(pl.n @ C + pl.d) / (rays_w @ pl.n)
         idx = np.nonzero(t > 0.1)[0]

@@ -30,7 +30,9 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose
 from services.synth import GroundTruthRenderer
+from services.views.proxy import PlaneProxy, combine
 from services.views.proxy import confs as proxy_confs
+from services.views.source_colour import SourceImages
 from services.views.source_colour import confs as source_confs
 from shared.logging import stage
 
@@ -42,7 +44,7 @@ confs: dict[str, dict[str, Any]] = {
         "min_alpha": 0.5,  # 3DGS: pixels less opaque than this get no depth
         "max_depth_m": 2000.0,
         # the views' colour: "source" (the full-resolution aerial images through the plane proxy's depth,
-        # services.views.source_colour; 2.15x the GT-correct matches of the 3DGS's own on isprs) or
+        # services.views.source_colour; 2.32x the GT-correct matches of the 3DGS's own on isprs) or
         # "splat" (the 3DGS's own colour and depth)
         "colour": "source",
         "proxy": dict(proxy_confs["default"]),  # services.views.proxy
@@ -96,18 +98,16 @@ class SourceRenderer:
     def __init__(
         self, base: SplatRenderer, sparse_dir: str | Path, image_dir: str | Path, conf: dict | None = None
     ):
-        from services.views.proxy import PlaneProxy
-        from services.views.source_colour import SourceImages
+        import pycolmap
 
         c = {**confs["default"], **(conf or {})}
+        rec = pycolmap.Reconstruction(str(sparse_dir))  # read once for the planes and the sources
         self.base = base
-        self.proxy = PlaneProxy.from_model(sparse_dir, c["proxy"])
-        self.sources = SourceImages(sparse_dir, image_dir, c["source"])
+        self.proxy = PlaneProxy.from_model(rec, c["proxy"])
+        self.sources = SourceImages(rec, image_dir, c["source"])
         self.last_stats: dict = {}
 
     def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
-        from services.views.proxy import combine
-
         rgb, depth = self.base.render(camera, pose)
         depth = combine(self.proxy.depth(camera, pose), depth, self.proxy.conf["occluder"])
         rgb, depth, self.last_stats = self.sources.colour(

@@ -86,10 +86,13 @@ def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray, cols: int = 4096) -> 
 class SourceImages:
     """The aerial images of a COLMAP model (full resolution, lazily loaded) and their 3DGS depth maps."""
 
-    def __init__(self, rec_dir: str | Path, image_dir: str | Path, conf: dict | None = None):
+    def __init__(
+        self, model: str | Path | pycolmap.Reconstruction, image_dir: str | Path, conf: dict | None = None
+    ):
+        """`model`: the aerial COLMAP model, a folder or a loaded Reconstruction."""
         self.conf = {**confs["default"], **(conf or {})}
         self.image_dir = Path(image_dir)
-        rec = pycolmap.Reconstruction(str(rec_dir))
+        rec = model if isinstance(model, pycolmap.Reconstruction) else pycolmap.Reconstruction(str(model))
         self._rec = rec  # the cameras below are references into it
         self.sources: list[dict] = []
         for img in sorted(rec.images.values(), key=lambda i: i.name):
