@@ -13,7 +13,9 @@ SSIM on the pixels where the truth has a surface (no sky), the median relative d
 fraction of pixels whose depth is within 5% of the truth, and matchability: ALIKED+LightGlue matches
 between the render and the true render (same camera) that land within 3 px of each other, what the
 matching stage needs of a view (PSNR and SSIM are dominated by low frequencies: a sharper model that
-finds many more correct matches scores about the same). Ratios are against the first model.
+finds many more correct matches scores about the same). Ratios are against the first model. With
+--source-images each model is also measured with its views coloured from the aerial images through the
+plane proxy (render_views' default colour).
 """
 
 from __future__ import annotations
@@ -91,6 +93,12 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=0, help="at most this many views, evenly spread (0: all)")
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--keypoints", type=int, default=1024, help="ALIKED keypoints for matchability (0: skip)")
+    ap.add_argument(
+        "--source-images",
+        type=Path,
+        help="the aerial images' folder: also measure each model's views coloured from them through the "
+        "plane proxy (services.views.SourceRenderer, label LABEL+source), render_views' default",
+    )
     ap.add_argument("--out", type=Path, help="write the per-view figures here (JSON)")
     args = ap.parse_args()
 
@@ -104,6 +112,11 @@ def main() -> None:
             models[label] = BlockRenderer(model, path, args.backend, 0.5)
         else:
             models[label] = SplatRenderer(path, args.backend, 0.5)
+    if args.source_images:
+        from services.views import SourceRenderer
+
+        for label in list(models):
+            models[f"{label}+source"] = SourceRenderer(models[label], args.sparse, args.source_images)
     views = json.loads(args.views.read_text())["views"]
     if args.limit and len(views) > args.limit:
         views = [views[i] for i in np.linspace(0, len(views) - 1, args.limit).round().astype(int)]

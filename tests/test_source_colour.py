@@ -117,3 +117,16 @@ def test_a_missing_source_image_is_a_clear_error(plane_survey):
     with pytest.raises(FileNotFoundError, match="A.jpg|B.jpg"):
         black = np.zeros((150, 200, 3), np.uint8)
         src.colour(view_cam, view, _plane_depth(view_cam, view), black, _plane_depth)
+
+
+def test_points_the_sources_see_through_are_floaters(plane_survey):
+    root, _, _, poses = plane_survey
+    src = SourceImages(root / "sparse", root / "images")
+    depth_fn = lambda c, p: _plane_depth(c, p)  # noqa: E731
+    on_plane = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
+    in_the_air = np.array([[0.0, 0.0, 8.0], [1.0, 1.0, 5.0]])  # between the cameras and the plane
+    below = np.array([[0.0, 0.0, -3.0]])  # hidden behind the plane: no evidence either way
+    assert not src.seen_through(on_plane, depth_fn).any()
+    assert src.seen_through(in_the_air, depth_fn).all()
+    assert not src.seen_through(below, depth_fn).any()
+    assert not src.seen_through(in_the_air, depth_fn, min_sources=3).any()  # only two sources here

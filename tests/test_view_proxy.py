@@ -111,3 +111,30 @@ def test_the_3dgs_depth_is_kept_in_front_of_the_planes_and_where_none_is_hit():
     # a plane hit: the planes' depth (9.5 is near it), unless the 3DGS sees something 15% in front (6.0);
     # no plane: the 3DGS's (7.0); neither: 0
     assert combine(planes, splat, 0.15).tolist() == [[10.0, 6.0, 7.0, 10.0]]
+
+
+def test_what_the_aerial_images_see_through_in_front_of_the_planes_is_dropped():
+    rng = np.random.default_rng(4)
+    g = np.c_[rng.uniform(-10, 10, (800, 2)), rng.normal(0, 0.02, 800)]  # the ground plane z = 0
+    proxy = PlaneProxy.from_points(g)
+    cam = Camera("PINHOLE", 64, 48, [100.0, 100.0, 32.0, 24.0])
+    pose = look_at(np.array([0.0, -1.0, 20.0]), np.array([0.0, 0.0, 0.0]))
+    planes = proxy.depth(cam, pose)
+    assert (planes > 0).all()
+    splat = planes.copy()
+    splat[:, :32] = 5.0  # something 15 m above the ground in the view's left half
+    kept = proxy.fuse(cam, pose, splat)  # no free-space test: the 3DGS's surface in front stays
+    assert (kept[:, :32] == 5.0).all() and np.allclose(kept[:, 32:], planes[:, 32:])
+
+    def air_below_10m(X: np.ndarray) -> np.ndarray:  # the aerial images see through what floats there
+        return X[:, 2] > 10.0
+
+    fused = proxy.fuse(cam, pose, splat, air_below_10m)
+    assert np.allclose(fused, planes)  # the floater is gone: the ground behind it
+    fused = proxy.fuse(cam, pose, splat, lambda X: np.zeros(len(X), bool))
+    assert (fused[:, :32] == 5.0).all()  # an occluder the aerial images see stays
+    sky = look_at(np.array([0.0, -1.0, 20.0]), np.array([0.0, 60.0, 22.0]))  # looking over the horizon
+    assert (proxy.depth(cam, sky) == 0).all()
+    floaters = np.full((48, 64), 3.0, np.float32)
+    assert (proxy.fuse(cam, sky, floaters) == 3.0).all()  # no plane, no test: the 3DGS's depth
+    assert (proxy.fuse(cam, sky, floaters, air_below_10m) == 0).all()  # no plane and seen through: none

@@ -342,8 +342,9 @@ class Job:
     # renderer
     def renderer(self, blocks: bool = True, colour: bool = True):
         """The views' renderer: the trained blocks over the whole-scene 3DGS when the job has them (and
-        `blocks`), else the whole-scene 3DGS, or the ground truth (renderer "gt"); with `colour` and the
-        views' conf colour "source", its views coloured from the aerial images (SourceRenderer)."""
+        `blocks`), else the whole-scene 3DGS, or the ground truth (renderer "gt"); with the views' conf
+        colour "source", its depth fused with the plane proxy and (with `colour`) its views coloured from
+        the aerial images (SourceRenderer)."""
         from services import views
 
         if self.settings["renderer"] == "gt":
@@ -360,8 +361,8 @@ class Job:
             base = BlockRenderer(self.splat.dir, self.blocks.dir, self.settings["splat_backend"], min_alpha)
         else:
             base = views.SplatRenderer(self.splat.dir, self.settings["splat_backend"], min_alpha)
-        if colour and conf["colour"] == "source":
-            return views.SourceRenderer(base, self.sfm.sparse, self.image_dir, conf)
+        if conf["colour"] == "source":  # without colour: the planes' depth for the planner's probes
+            return views.SourceRenderer(base, self.sfm.sparse, self.image_dir, conf, colour=colour)
         return base
 
     def render_conf(self) -> dict:
@@ -370,7 +371,7 @@ class Job:
 
         return merge_conf(rendering.confs["default"], self.settings["views"])
 
-    def renderer_inputs(self, blocks: bool = True, colour: bool = True) -> list[Path]:
+    def renderer_inputs(self, blocks: bool = True) -> list[Path]:
         if self.settings["renderer"] == "gt":
             return [Path(self.settings["scene"]) / "gt" / "scene.json"]
         own = [self.blocks.plan, self.blocks.report]
@@ -378,5 +379,5 @@ class Job:
         return [
             self.splat.model,
             *(own if blocks and self.uses_blocks else []),
-            *(sources if colour and self.render_conf()["colour"] == "source" else []),
+            *(sources if self.render_conf()["colour"] == "source" else []),
         ]

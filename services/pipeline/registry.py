@@ -142,13 +142,17 @@ DECLARATIONS: tuple[StageDef, ...] = (
         "plan_views",
         queue="gpu",
         run=run_plan_views,
-        conf=lambda j: {"viewpoints": j.viewpoint_conf(), "renderer": j.settings["renderer"]},
+        conf=lambda j: {
+            "viewpoints": j.viewpoint_conf(),
+            "renderer": j.settings["renderer"],
+            "rendering": j.render_conf(),  # the depth probe: the plane proxy's with colour "source"
+        },
         inputs=lambda j: [
             j.sfm.sparse,
             j.sfm.georef,
             j.pos,
             j.cameras,
-            *j.renderer_inputs(blocks=False, colour=False),
+            *j.renderer_inputs(blocks=False),
         ],
         outputs=lambda j: [j.plan.views],
         dirs=("plan",),
@@ -164,7 +168,7 @@ DECLARATIONS: tuple[StageDef, ...] = (
             "backend": j.settings["splat_backend"],
         },
         inputs=lambda j: (
-            [j.plan.views, j.sfm.sparse, *j.renderer_inputs(blocks=False, colour=False)]
+            [j.plan.views, j.sfm.sparse, *j.renderer_inputs(blocks=False)]
             + ([] if j.settings["renderer"] == "gt" else [images_of(j, "aerial")])
         ),
         outputs=lambda j: [j.blocks.plan, j.blocks.report],

@@ -6,16 +6,18 @@ coloured from the full-resolution aerial images through that depth shifts their 
 and facades are planes, and the aerial model's sparse points on them are accurate to centimetres. This
 finds those planes (sequential RANSAC with local samples, each plane's extent an occupancy grid of its
 points, every connected part filled to its convex hull) and ray casts them: the nearest occupied plane
-along each pixel's ray. `combine` keeps the 3DGS's depth where it sees something clearly in front of the
-planes (trees, cars, lamp posts), and where no plane is hit.
+along each pixel's ray. `fuse` keeps the 3DGS's depth where it sees something clearly in front of the
+planes (trees, cars, lamp posts; not the floaters a CPU-trained 3DGS grows in the air, which the aerial
+images see through), and where no plane is hit.
 
     proxy = PlaneProxy.from_model("sfm/sparse")
-    depth = combine(proxy.depth(camera, pose), depth_3dgs)
+    depth = proxy.fuse(camera, pose, depth_3dgs)
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +31,8 @@ from services.colmap_model import Camera, Pose
 
 logger = logging.getLogger("midview.views.proxy")
 
+FreeSpace = Callable[[np.ndarray], np.ndarray]  # world points (N, 3) -> bool (N,): seen through
+
 confs: dict[str, dict[str, Any]] = {
     "default": {
         "min_track_length": 3,  # sparse points seen by fewer images are left out
@@ -40,6 +44,10 @@ confs: dict[str, dict[str, Any]] = {
         "cell_m": 1.0,  # the occupancy grid of a plane's points
         "close_cells": 5,  # holes of up to this many cells between its points are closed
         "occluder": 0.15,  # the 3DGS's depth wins where it is this much (relative) in front of the plane
+        # ... and where the aerial images do not see through it (`fuse` with a free-space test): a
+        # CPU-trained 3DGS grows floaters in the air near the low views; trees, cars and roofs the aerial
+        # images see where they are
+        "free_space_stride": 4,  # the test at every this-many-th pixel (the mask then filled between)
     },
 }
 
@@ -226,10 +234,48 @@ class PlaneProxy:
         best[~np.isfinite(best)] = 0.0
         return best.reshape(H, W).astype(np.float32)
 
+    def fuse(
+        self, camera: Camera, pose: Pose, depth: np.ndarray, free_space: FreeSpace | None = None
+    ) -> np.ndarray:
+        """The planes' depth combined with another depth (H, W) of the same view (the 3DGS's), see
+        `combine`; with `free_space` (world points (N, 3) -> whether the aerial images see through
+        them), the other depth's surfaces in front of the planes, or where no plane is hit, only where
+        they do not (elsewhere the plane behind, or no depth: 0)."""
+        planes = self.depth(camera, pose)
+        front = (depth > 0) & (planes > 0) & (depth < planes * (1.0 - self.conf["occluder"]))
+        tested = front | ((depth > 0) & (planes == 0))
+        if free_space is None or not tested.any():
+            return combine(planes, depth, self.conf["occluder"])
+        floater = self._floaters(camera, pose, depth, tested, free_space)
+        out = combine(planes, depth, self.conf["occluder"], ~floater)
+        out[floater & (planes == 0)] = 0.0
+        return out
 
-def combine(plane_depth: np.ndarray, depth: np.ndarray, occluder: float = 0.15) -> np.ndarray:
+    def _floaters(
+        self, camera: Camera, pose: Pose, depth: np.ndarray, tested: np.ndarray, free_space: FreeSpace
+    ) -> np.ndarray:
+        """free_space of the surface at depth (H, W), at the centre of each k x k cell (k:
+        free_space_stride) whose centre is `tested` (H, W), the verdict spread over the cell."""
+        k = max(1, int(self.conf["free_space_stride"]))
+        H, W = depth.shape
+        ys = np.minimum(np.arange(0, H, k) + k // 2, H - 1)
+        xs = np.minimum(np.arange(0, W, k) + k // 2, W - 1)
+        cell_v, cell_u = np.nonzero(tested[np.ix_(ys, xs)])
+        v, u = ys[cell_v], xs[cell_u]
+        X = pose.unproject(camera.K, np.stack([u + 0.5, v + 0.5], 1), depth[v, u].astype(np.float64))
+        cells = np.zeros((len(ys), len(xs)), bool)
+        cells[cell_v, cell_u] = free_space(X)
+        return np.repeat(np.repeat(cells, k, 0), k, 1)[:H, :W] & tested
+
+
+def combine(
+    plane_depth: np.ndarray, depth: np.ndarray, occluder: float = 0.15, supported: np.ndarray | None = None
+) -> np.ndarray:
     """The planes' depth where a plane is hit, unless the other depth (the 3DGS's) sees something more
-    than `occluder` (relative) in front of it; the other depth elsewhere."""
+    than `occluder` (relative) in front of it (and, given `supported` (H, W) bool, it is supported
+    there); the other depth elsewhere."""
     out = np.where(plane_depth > 0, plane_depth, depth)
     front = (depth > 0) & (plane_depth > 0) & (depth < plane_depth * (1.0 - occluder))
+    if supported is not None:
+        front &= supported
     return np.where(front, depth, out).astype(np.float32)

@@ -30,7 +30,7 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose
 from services.synth import GroundTruthRenderer
-from services.views.proxy import PlaneProxy, combine
+from services.views.proxy import PlaneProxy
 from services.views.proxy import confs as proxy_confs
 from services.views.source_colour import SourceImages
 from services.views.source_colour import confs as source_confs
@@ -91,12 +91,18 @@ class SplatRenderer:
 class SourceRenderer:
     """A 3DGS renderer's views coloured from the full-resolution aerial images (services.views.
     source_colour) through the plane proxy's depth (services.views.proxy) where it has one, else the
-    3DGS's; the 3DGS's colour where no source sees a pixel."""
+    3DGS's (without what the aerial images see through: floaters); the 3DGS's colour where no source
+    sees a pixel. With colour False, only that depth (the planner's depth probe) and the 3DGS's colour."""
 
     name = "splat+source"
 
     def __init__(
-        self, base: SplatRenderer, sparse_dir: str | Path, image_dir: str | Path, conf: dict | None = None
+        self,
+        base: SplatRenderer,
+        sparse_dir: str | Path,
+        image_dir: str | Path,
+        conf: dict | None = None,
+        colour: bool = True,
     ):
         import pycolmap
 
@@ -105,14 +111,16 @@ class SourceRenderer:
         self.base = base
         self.proxy = PlaneProxy.from_model(rec, c["proxy"])
         self.sources = SourceImages(rec, image_dir, c["source"])
+        self.colour = colour
         self.last_stats: dict = {}
 
     def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         rgb, depth = self.base.render(camera, pose)
-        depth = combine(self.proxy.depth(camera, pose), depth, self.proxy.conf["occluder"])
-        rgb, depth, self.last_stats = self.sources.colour(
-            camera, pose, depth, rgb, lambda c, p: self.base.render(c, p)[1]
-        )
+        depth_fn = lambda c, p: self.base.render(c, p)[1]  # noqa: E731
+        depth = self.proxy.fuse(camera, pose, depth, lambda X: self.sources.seen_through(X, depth_fn))
+        if not self.colour:
+            return rgb, depth
+        rgb, depth, self.last_stats = self.sources.colour(camera, pose, depth, rgb, depth_fn)
         return rgb, depth
 
 

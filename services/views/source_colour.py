@@ -45,6 +45,12 @@ confs: dict[str, dict[str, Any]] = {
         # the two best sources must agree on a point's colour (mean absolute difference over 7x7 pixels
         # below this many grey levels): where the 3DGS's depth is off they see different surfaces
         "consistency": 12.0,
+        # the free-space test (seen_through): a point lies in front of a source's surface when nearer than
+        # its depth there by more than free_space_sigmas x that depth map's own relative error (the median
+        # over the source's sparse points, at least free_space_min_rel), + free_space_abs_m
+        "free_space_sigmas": 3.0,
+        "free_space_min_rel": 0.005,
+        "free_space_abs_m": 0.1,
         "cache_mb": 1500,  # source image pyramids held in memory (uint8)
     },
 }
@@ -111,10 +117,14 @@ class SourceImages:
                     "camera": cam,
                     "pose": Pose(m[:, :3].copy(), m[:, 3].copy()),
                     "pinhole": pinhole,
+                    "points": np.array(
+                        [rec.points3D[p.point3D_id].xyz for p in img.points2D if p.has_point3D()], float
+                    ).reshape(-1, 3),
                 }
             )
         self._pyramids: OrderedDict[str, list[np.ndarray]] = OrderedDict()
         self._depths: dict[str, tuple[np.ndarray, float]] = {}
+        self._depth_errors: dict[str, float] = {}
 
     # -- cached inputs ---------------------------------------------------------------------------
     def pyramid(self, name: str) -> list[np.ndarray]:
@@ -148,6 +158,22 @@ class SourceImages:
             )
             self._depths[src["name"]] = (np.asarray(depth_fn(small, src["pose"]), np.float32), s)
         return self._depths[src["name"]]
+
+    def depth_error(self, src: dict, depth_fn: DepthFn) -> float:
+        """The median relative error of the source's depth map at its sparse points (inf with fewer than
+        10 of them)."""
+        if src["name"] not in self._depth_errors:
+            dmap, s = self.depth(src, depth_fn)
+            idx, uv, z = self._inside(src, src["points"])
+            d = dmap[
+                np.clip((uv[:, 1] * s).astype(int), 0, dmap.shape[0] - 1),
+                np.clip((uv[:, 0] * s).astype(int), 0, dmap.shape[1] - 1),
+            ]
+            ok = d > 0
+            self._depth_errors[src["name"]] = (
+                float(np.median(np.abs(d[ok] - z[ok]) / z[ok])) if ok.sum() >= 10 else float("inf")
+            )
+        return self._depth_errors[src["name"]]
 
     @staticmethod
     def _inside(src: dict, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -187,6 +213,34 @@ class SourceImages:
         den = cv2.boxFilter(valid, -1, (7, 7), normalize=False)
         mean = np.where(den > 0, num / np.maximum(den, 1.0), np.inf)
         return ok & (mean[vi, ui] <= limit)
+
+    def seen_through(self, X: np.ndarray, depth_fn: DepthFn, min_sources: int = 2) -> np.ndarray:
+        """Which points X (N, 3) lie in space the sources see through: at least `min_sources` of them
+        see a surface clearly behind the point, more than see a surface at it. Clearly: beyond the
+        depth map's own error (free_space_sigmas x its median relative error at the source's sparse
+        points; visibility_rel where it has too few to measure). A 3DGS trained from the air grows such
+        floaters near the low views; trees, cars and roofs are where the sources see them."""
+        c = self.conf
+        through = np.zeros(len(X), np.int32)
+        at = np.zeros(len(X), np.int32)
+        for src in self.sources:
+            idx, uv, z = self._inside(src, X)
+            if len(idx) == 0:
+                continue
+            err = self.depth_error(src, depth_fn)
+            dmap, s = self.depth(src, depth_fn)
+            du = np.clip((uv[:, 0] * s).astype(int), 0, dmap.shape[1] - 1)
+            dv = np.clip((uv[:, 1] * s).astype(int), 0, dmap.shape[0] - 1)
+            ds = dmap[dv, du]
+            rel = (
+                max(float(c["free_space_sigmas"]) * err, float(c["free_space_min_rel"]))
+                if np.isfinite(err)
+                else float(c["visibility_rel"])
+            )
+            tol = ds * rel + float(c["free_space_abs_m"])
+            through[idx] += (ds > 0) & (z < ds - tol)
+            at[idx] += (ds > 0) & (np.abs(z - ds) <= tol)
+        return (through >= min_sources) & (through > at)
 
     # -- colour ----------------------------------------------------------------------------------
     def _score(
