@@ -159,16 +159,19 @@ class SourceImages:
             self._depths[src["name"]] = (np.asarray(depth_fn(small, src["pose"]), np.float32), s)
         return self._depths[src["name"]]
 
+    def depth_at(self, src: dict, uv: np.ndarray, depth_fn: DepthFn) -> np.ndarray:
+        """The source's depth map at its pixels uv (N, 2) (COLMAP convention, full resolution)."""
+        dmap, s = self.depth(src, depth_fn)
+        du = np.clip((uv[:, 0] * s).astype(int), 0, dmap.shape[1] - 1)
+        dv = np.clip((uv[:, 1] * s).astype(int), 0, dmap.shape[0] - 1)
+        return dmap[dv, du]
+
     def depth_error(self, src: dict, depth_fn: DepthFn) -> float:
         """The median relative error of the source's depth map at its sparse points (inf with fewer than
         10 of them)."""
         if src["name"] not in self._depth_errors:
-            dmap, s = self.depth(src, depth_fn)
-            idx, uv, z = self._inside(src, src["points"])
-            d = dmap[
-                np.clip((uv[:, 1] * s).astype(int), 0, dmap.shape[0] - 1),
-                np.clip((uv[:, 0] * s).astype(int), 0, dmap.shape[1] - 1),
-            ]
+            _, uv, z = self._inside(src, src["points"])
+            d = self.depth_at(src, uv, depth_fn)
             ok = d > 0
             self._depth_errors[src["name"]] = (
                 float(np.median(np.abs(d[ok] - z[ok]) / z[ok])) if ok.sum() >= 10 else float("inf")
@@ -228,10 +231,7 @@ class SourceImages:
             if len(idx) == 0:
                 continue
             err = self.depth_error(src, depth_fn)
-            dmap, s = self.depth(src, depth_fn)
-            du = np.clip((uv[:, 0] * s).astype(int), 0, dmap.shape[1] - 1)
-            dv = np.clip((uv[:, 1] * s).astype(int), 0, dmap.shape[0] - 1)
-            ds = dmap[dv, du]
+            ds = self.depth_at(src, uv, depth_fn)
             rel = (
                 max(float(c["free_space_sigmas"]) * err, float(c["free_space_min_rel"]))
                 if np.isfinite(err)
@@ -254,10 +254,7 @@ class SourceImages:
             return idx, uv, z, z
         ray_s = X[idx] - src["pose"].center
         cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx]) / np.linalg.norm(ray_s, axis=1)
-        dmap, s = self.depth(src, depth_fn)
-        du = np.clip((uv[:, 0] * s).astype(int), 0, dmap.shape[1] - 1)
-        dv = np.clip((uv[:, 1] * s).astype(int), 0, dmap.shape[0] - 1)
-        ds = dmap[dv, du]
+        ds = self.depth_at(src, uv, depth_fn)
         ok = cosang >= np.cos(np.radians(float(c["max_angle_deg"])))
         ok &= (ds > 0) & (z <= ds * (1.0 + float(c["visibility_rel"])) + float(c["visibility_abs_m"]))
         idx, uv, z, cosang = idx[ok], uv[ok], z[ok], cosang[ok]
