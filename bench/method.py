@@ -107,6 +107,42 @@ def truth_alignment(scene: Path, sparse: Path) -> tuple[float, np.ndarray, np.nd
     return _kabsch(np.array([est[n].center for n in names]), np.array([gt[n].center for n in names]), True)
 
 
+def aerial_observable(scene: Path, sparse: Path, width: int = 160, min_images: int = 2) -> dict[str, float]:
+    """Per ground image, the fraction of what it sees (the truth's depth at its true pose, `width` px)
+    that at least `min_images` aerial images of the model see too (the truth's depth at their poses,
+    within 3% + 0.2 m): what any view rendered from the aerial images can show of it. Perfect views
+    render the truth, also where no aerial image looks."""
+    from services.colmap_model import Pose, read_model
+    from services.geometry import scaled_camera
+    from services.views import GroundTruthRenderer
+
+    gt = GroundTruthRenderer(scene, sparse)
+    cams, poses = read_model(sparse)
+    aerial = []
+    for n, p in sorted(poses.items()):
+        c = scaled_camera(cams[n], 3 * width)
+        aerial.append((c, p, gt.render(c, p)[1]))
+    s, R, t = truth_alignment(scene, sparse)  # truth = s R model + t
+    gcams, gposes = read_model(scene / "gt" / "sparse")
+    out = {}
+    for g in sorted(n for n in gposes if n.startswith("ground/")):
+        P = gposes[g]
+        pose = Pose(P.R @ R, (P.R @ t + P.t) / s)  # the true pose in the model frame
+        c = scaled_camera(gcams[g], width)
+        d = gt.render(c, pose)[1]
+        v, u = np.nonzero(d > 0)
+        X = pose.unproject(c.K, np.stack([u + 0.5, v + 0.5], 1), d[v, u].astype(float))
+        seen = np.zeros(len(X), int)
+        for ca, pa, da in aerial:
+            uv, z = pa.project(ca.K, X)
+            ok = (z > 0) & (uv >= 0).all(1) & (uv[:, 0] < ca.width - 1) & (uv[:, 1] < ca.height - 1)
+            i = np.nonzero(ok)[0]
+            zs = da[uv[i, 1].astype(int), uv[i, 0].astype(int)]
+            seen[i[np.abs(zs - z[i]) <= 0.03 * z[i] + 0.2]] += 1
+        out[g] = float((seen >= min_images).mean()) if len(X) else 0.0
+    return out
+
+
 def pnp_accuracy(scene: Path, job: pipeline.Job) -> dict:
     """The reducer's accepted ground poses against the true centres (model frame aligned to the truth)."""
     from services.colmap_model import read_model
@@ -436,10 +472,34 @@ def main(argv: list[str] | None = None) -> int:
     console.print(f"report: {out / 'method.json'}")
     if args.json:
         doc = results_doc(rows, sfm_rows, timings, argv)
+        if not args.no_sfm and jobs:
+            add_observable(doc, aerial_observable(scene, next(iter(jobs.values())).sfm.sparse), sfm_rows)
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(doc, indent=1))
         console.print(f"figures: {args.json}")
     return 0
+
+
+def add_observable(
+    doc: dict, observable: dict[str, float], sfm_rows: dict, min_fraction: float = 0.5
+) -> None:
+    """The figures with the aerial-observability bound: per ground image its fraction (aerial_observable),
+    the number at least min_fraction observable, and per method how many of those it put within 0.5 m."""
+    keep = {g for g, f in observable.items() if f >= min_fraction}
+    doc["figures"]["ground_aerial_observable"] = {g: round(f, 3) for g, f in observable.items()}
+    doc["figures"]["ground_observable_total"] = len(keep)
+    for label, row in sfm_rows.items():
+        ev = row.get("sfm")
+        if not ev:
+            continue
+        key, planner = method_key("midview " + label)
+        n = sum(
+            r["set"] == "ground" and r["name"] in keep and r.get("absolute_error", np.inf) <= 0.5
+            for r in ev["per_image"]
+        )
+        for k in (key, f"{key}-{planner}"):
+            if k in doc["figures"] and doc["figures"][k].get("planner") == planner:
+                doc["figures"][k]["ground_observable_within_0_5m"] = n
 
 
 def within(ev: dict, metres: float = 0.5) -> int:
