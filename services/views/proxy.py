@@ -242,14 +242,12 @@ class PlaneProxy:
         them), the other depth's surfaces in front of the planes, or where no plane is hit, only where
         they do not (elsewhere the plane behind, or no depth: 0)."""
         planes = self.depth(camera, pose)
-        front = (depth > 0) & (planes > 0) & (depth < planes * (1.0 - self.conf["occluder"]))
-        tested = front | ((depth > 0) & (planes == 0))
-        if free_space is None or not tested.any():
-            return combine(planes, depth, self.conf["occluder"])
-        floater = self._floaters(camera, pose, depth, tested, free_space)
-        out = combine(planes, depth, self.conf["occluder"], ~floater)
-        out[floater & (planes == 0)] = 0.0
-        return out
+        if free_space is not None:
+            front = (depth > 0) & (planes > 0) & (depth < planes * (1.0 - self.conf["occluder"]))
+            tested = front | ((depth > 0) & (planes == 0))
+            if tested.any():  # a floater is no surface: the plane behind it, or none
+                depth = np.where(self._floaters(camera, pose, depth, tested, free_space), 0.0, depth)
+        return combine(planes, depth, self.conf["occluder"])
 
     def _floaters(
         self, camera: Camera, pose: Pose, depth: np.ndarray, tested: np.ndarray, free_space: FreeSpace
@@ -268,14 +266,9 @@ class PlaneProxy:
         return np.repeat(np.repeat(cells, k, 0), k, 1)[:H, :W] & tested
 
 
-def combine(
-    plane_depth: np.ndarray, depth: np.ndarray, occluder: float = 0.15, supported: np.ndarray | None = None
-) -> np.ndarray:
+def combine(plane_depth: np.ndarray, depth: np.ndarray, occluder: float = 0.15) -> np.ndarray:
     """The planes' depth where a plane is hit, unless the other depth (the 3DGS's) sees something more
-    than `occluder` (relative) in front of it (and, given `supported` (H, W) bool, it is supported
-    there); the other depth elsewhere."""
+    than `occluder` (relative) in front of it; the other depth elsewhere."""
     out = np.where(plane_depth > 0, plane_depth, depth)
     front = (depth > 0) & (plane_depth > 0) & (depth < plane_depth * (1.0 - occluder))
-    if supported is not None:
-        front &= supported
     return np.where(front, depth, out).astype(np.float32)

@@ -117,9 +117,7 @@ class SourceImages:
                     "camera": cam,
                     "pose": Pose(m[:, :3].copy(), m[:, 3].copy()),
                     "pinhole": pinhole,
-                    "points": np.array(
-                        [rec.points3D[p.point3D_id].xyz for p in img.points2D if p.has_point3D()], float
-                    ).reshape(-1, 3),
+                    "image_id": img.image_id,
                 }
             )
         self._pyramids: OrderedDict[str, list[np.ndarray]] = OrderedDict()
@@ -170,7 +168,9 @@ class SourceImages:
         """The median relative error of the source's depth map at its sparse points (inf with fewer than
         10 of them)."""
         if src["name"] not in self._depth_errors:
-            _, uv, z = self._inside(src, src["points"])
+            img = self._rec.images[src["image_id"]]
+            P = [self._rec.points3D[p.point3D_id].xyz for p in img.points2D if p.has_point3D()]
+            _, uv, z = self._inside(src, np.array(P, float).reshape(-1, 3))
             d = self.depth_at(src, uv, depth_fn)
             ok = d > 0
             self._depth_errors[src["name"]] = (
