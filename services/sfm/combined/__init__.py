@@ -19,12 +19,14 @@ continues from it (`input_path`): it registers the other ground images through t
 triangulates, and bundle-adjusts everything; ground images it registered but the model leaves uncertain
 (their own points do not count for more than the aerial points that place them) or far from their POS
 are dropped, and those the reducer localized are added at their PnP pose where the mapper left them out.
+Before that every ground image is refined with the aerial images held (`refine_ground`: the seeds too).
 The result is georeferenced like the aerial model (a similarity to the aerial POS in the aerial model's
 ENU frame) and written to out/sparse with report.json (NRI per set, N3P, reprojection error, ground
 camera positions against the PnP and POS).
 
 Modules: `database` (the combined database), `model` (the input model), `mapping` (the mapper, the
-dropped and added ground images), `report`, `confs`; `main` runs them as named steps.
+dropped and added ground images), `refine` (the last adjustment), `report`, `confs`; `main` runs them
+as named steps.
 """
 
 from __future__ import annotations
@@ -159,7 +161,7 @@ def main(
         rec = run_mapper(cdb.path, image_dir, out_dir, seed, n_ids, conf, step)
         timings["mapping"] = time.perf_counter() - t0
         limits = conf["pos_limits"] or reduce_conf["pnp"]
-        dropped, added = settle_ground(rec, seed, cdb, pnp, limits, conf)
+        dropped, added, refined = settle_ground(rec, seed, cdb, pnp, limits, conf)
 
     with stage("combined:georef", logger):
         frame, geo_summary = georeference(rec, aerial_dir, pos, conf)
@@ -169,7 +171,7 @@ def main(
     fixed, min_pair = conf["mapping"]["fix_aerial"], int(conf["mapping"]["min_num_matches"])
     report = build_report(
         rec, cdb.ids, cdb.priors, pnp, seed, geo_summary, timings, t_all, added, dropped, fixed,
-        cdb.pair_sizes, min_pair,
+        cdb.pair_sizes, min_pair, refined,
     )  # fmt: skip
     report["ground_pairs"] = cdb.ground_pairs
     if conf["gis"]:

@@ -53,6 +53,19 @@ default_conf: dict[str, Any] = {
         "fix_aerial": True,  # the input model (aerial + PnP-seeded ground) stays fixed; BA refines the rest
         "seed": 0,
     },
+    # the last adjustment (services.sfm.combined.refine): every ground image observing min_observations
+    # points refined with the aerial images held (the seeds too: a PnP pose held fixed places the points
+    # the mapper registers its neighbours on); observations off by max_reproj_px dropped between rounds
+    "refine_ground": {
+        "enabled": True,
+        "loss": "cauchy",  # pycolmap's LossFunctionType: trivial, soft_l1, cauchy
+        "loss_scale_px": 2.0,  # the robust loss's scale (reprojection error in pixels)
+        "rounds": 2,  # adjust, then drop observations off by max_reproj_px, and again
+        "max_reproj_px": 4.0,
+        "min_tri_angle_deg": 1.5,
+        "min_observations": 15,  # ground images observing fewer 3D points stay held
+        "max_iterations": 100,
+    },
     "georef": True,
     # GeoPackage/GeoJSON cameras, omega/phi/kappa text and LAS points in out_dir/gis (services.sfm.gis)
     "gis": True,

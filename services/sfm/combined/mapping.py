@@ -21,6 +21,7 @@ from services.sfm.combined.model import (
     pose_of_record,
     registered_ground,
 )
+from services.sfm.combined.refine import refine_ground
 
 logger = logging.getLogger("midview.combined_sfm")
 
@@ -269,10 +270,22 @@ def settle_ground(
     pnp: dict[str, dict],
     pos_limits: dict,
     conf: dict,
-) -> tuple[dict[str, str], list[str]]:
-    """After the mapper: (dropped {name: reason}, added [name]): the ground images it registered that the
-    model leaves uncertain or that disagree with their POS dropped (drop_ill_determined; those held at a
-    PnP pose stay), then those the reducer localized added at their PnP pose (add_pnp_images)."""
+) -> tuple[dict[str, str], list[str], dict[str, float]]:
+    """After the mapper: (dropped {name: reason}, added [name], refined {name: metres moved}): every ground
+    image refined with the aerial images held (refine_ground), the ground images the mapper registered
+    that the model leaves uncertain or that disagree with their POS dropped (drop_ill_determined; the
+    seeds stay), then those the reducer localized added at their PnP pose (add_pnp_images)."""
+    refined = {}
+    if conf["refine_ground"]["enabled"]:
+        refined = refine_ground(rec, conf["refine_ground"])
+        if refined:
+            moved = sorted(refined.values())
+            logger.info(
+                "%d ground images refined with the aerial images held: moved %.2f m median, %.2f m max",
+                len(moved),
+                moved[len(moved) // 2],
+                moved[-1],
+            )
     held = registered_ground(seed)
     max_std = conf["max_position_std_m"]
     dropped = drop_ill_determined(rec, held, max_std, cdb.priors, cdb.prior_std, pos_limits)
@@ -292,4 +305,4 @@ def settle_ground(
             len(added),
             ", ".join(added),
         )
-    return dropped, added
+    return dropped, added, refined

@@ -27,13 +27,16 @@ def _ground_entry(
     dropped: dict[str, str],
     largest: int | None,
     min_pair_matches: int,
+    refined_m: float | None = None,
 ) -> dict[str, Any]:
     """One ground image in the report: how it was registered and where (against its POS and PnP pose),
     or why it was not (`largest`: its largest verified pair; None: unknown)."""
     d: dict[str, Any] = {"registered": g in reg}
     if g in reg:
-        # "pnp": at the reducer's PnP pose (seeded, kept fixed by the mapper, or added after it)
+        # "pnp": from the reducer's PnP pose (seeded, kept fixed by the mapper, or added after it)
         d["registered_by"] = "pnp" if g in by_pnp else "mapper"
+        if refined_m is not None:  # how far the last adjustment moved it (services.sfm.combined.refine)
+            d["refined_m"] = refined_m
         d["observations"] = int(reg[g].num_points3D)
         c = np.asarray(reg[g].projection_center())
         d["center"] = c.tolist()
@@ -72,6 +75,7 @@ def build_report(
     conf_fixed: bool = True,
     pair_sizes: dict[int, int] | None = None,
     min_pair_matches: int = 15,
+    refined: dict[str, float] | None = None,
 ) -> dict:
     """report.json of the combined model (see the module docstring)."""
     reg = {im.name: im for im in rec.images.values() if im.has_pose}
@@ -91,6 +95,7 @@ def build_report(
             dropped or {},
             None if pair_sizes is None else pair_sizes.get(ids[g], 0),
             min_pair_matches,
+            (refined or {}).get(g),
         )
         for g in sets["ground"]
     }
@@ -103,6 +108,7 @@ def build_report(
         "mean_track_length": float(rec.compute_mean_track_length()),
         "added_pnp_ground_images": sorted(added or []),
         "seeded_ground_images": len(registered_ground(seed)),
+        "refined_ground_images": len(refined or {}),
         "georef": georef,
         "ground": ground,
         "timings_s": {

@@ -1,0 +1,71 @@
+"""The combined SfM's last adjustment: every ground image refined against all its observations, the
+aerial images held where the aerial SfM and its georeference put them.
+
+The mapper holds the frames of its input model fixed: the aerial images, and the ground images seeded at
+the reducer's PnP pose. A seed's PnP pose rests on the rendered views' points alone and can be decimetres
+off within its stated std (on `small-walk` one seed 0.51 m off, 114 inliers); held fixed, it places the
+ground-ground points it triangulates and with them every ground image the mapper registers through them
+(a run of 8 images 0.5-0.8 m off, docs/measurements.md). Released in a bundle adjustment with the aerial
+images held, it moves to where the transferred aerial points and its neighbours' observations agree.
+A robust loss keeps the wrong transferred matches that survived the reducer from pulling; ground images
+with too few observations to determine a pose (one added at its PnP pose with a single point) stay held.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pycolmap
+
+logger = logging.getLogger("midview.combined_sfm")
+
+
+def _ba_options(conf: dict) -> pycolmap.BundleAdjustmentOptions:
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = opts.refine_extra_params = opts.refine_principal_point = False
+    opts.print_summary = False
+    loss = str(conf["loss"]).upper()
+    opts.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss)
+    opts.ceres.loss_function_scale = float(conf["loss_scale_px"])
+    opts.ceres.solver_options.max_num_iterations = int(conf["max_iterations"])
+    return opts
+
+
+def refine_ground(rec: pycolmap.Reconstruction, conf: dict) -> dict[str, float]:
+    """Bundle-adjust `rec` in place with its aerial frames, intrinsics and the ground images observing
+    fewer than min_observations points held; the rest of the ground images and every 3D point free.
+    Returns {ground image name: how far its camera centre moved (m)}."""
+    free = {
+        im.image_id: im.name
+        for im in rec.images.values()
+        if im.has_pose and im.name.startswith("ground/") and im.num_points3D >= conf["min_observations"]
+    }
+    if not free:
+        return {}
+    before = {i: np.asarray(rec.images[i].projection_center()) for i in free}
+    opts = _ba_options(conf)
+    for _ in range(int(conf["rounds"])):
+        cfg = pycolmap.BundleAdjustmentConfig()
+        for im in rec.images.values():
+            if not im.has_pose:
+                continue
+            cfg.add_image(im.image_id)
+            if im.image_id not in free:
+                cfg.set_constant_rig_from_world_pose(im.frame_id)
+        for cid in rec.cameras:
+            cfg.set_constant_cam_intrinsics(cid)
+        summary = pycolmap.create_default_bundle_adjuster(opts, cfg, rec).solve()
+        filtered = pycolmap.ObservationManager(rec).filter_all_points3D(
+            float(conf["max_reproj_px"]), float(conf["min_tri_angle_deg"])
+        )
+        logger.info(
+            "ground refinement: %d ground images free, %s, %d observations filtered",
+            len(free),
+            summary.termination_type.name,
+            filtered,
+        )
+    return {
+        name: float(np.linalg.norm(np.asarray(rec.images[i].projection_center()) - before[i]))
+        for i, name in free.items()
+    }
