@@ -350,9 +350,13 @@ def main(argv: list[str] | None = None) -> int:
                     stages=stages,
                     progress=lambda s, f, m, n=name: logger.info("[%s %s] %3.0f%% %s", n, s, 100 * f, m),
                 )
-                timings[name] = time.perf_counter() - t0
+                # each stage's seconds as its marker recorded them (also when this run found it up to
+                # date), the config's total their sum: a rerun that only redoes one stage reports the
+                # whole method's time, with this run's own wall time beside it
                 for s, rr in res.items():
-                    timings[f"{name}:{s}"] = float(rr.get("seconds", 0.0)) if not rr.get("skipped") else 0.0
+                    timings[f"{name}:{s}"] = float(rr.get("seconds", 0.0))
+                timings[name] = sum(timings[f"{name}:{s}"] for s in res)
+                timings[f"{name}:this-run"] = time.perf_counter() - t0
                 jobs[(r, p, mt)] = job
     # baselines
     files: dict[str, Path] = {}
