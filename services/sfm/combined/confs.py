@@ -6,7 +6,9 @@ from typing import Any
 
 default_conf: dict[str, Any] = {
     "ground_pairs": {
-        "num_neighbors": 4,  # each ground image with its nearest ground images (POS) ...
+        # each ground image with its nearest ground images (POS; 4 left small-walk one image fewer and its
+        # ground images 2-3x farther off: docs/measurements.md) ...
+        "num_neighbors": 6,
         "max_distance_m": 40.0,  # ... within this distance ...
         "max_heading_deg": 100.0,  # ... whose viewing directions differ by less than this
         "min_inliers": 15,
