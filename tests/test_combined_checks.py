@@ -325,7 +325,8 @@ def test_the_last_adjustment_moves_a_run_placed_by_an_offset_seed_to_the_aerial_
     """services.sfm.combined.refine_ground: three ground images and the facade points they share, all
     0.5 m off (a seed's PnP pose off by that much, its neighbours registered through the points it placed),
     come back to within centimetres of the truth, held by the 40 points two fixed aerial cameras see;
-    the aerial cameras do not move, and an image with too few observations stays held."""
+    the aerial cameras do not move, and images that share too few points with other ground images stay
+    held."""
     from services.sfm.combined import default_conf
     from services.sfm.combined.refine import refine_ground
 
@@ -341,7 +342,7 @@ def test_the_last_adjustment_moves_a_run_placed_by_an_offset_seed_to_the_aerial_
     for p in rec.points3D.values():
         if all(rec.images[e.image_id].name.startswith("ground/") for e in p.track.elements):
             p.xyz = p.xyz + offset
-    conf = merge_conf(default_conf["refine_ground"], {"min_observations": 15})
+    conf = merge_conf(default_conf["refine_ground"], {"min_shared_observations": 15})
     moved = refine_ground(rec, conf)
     assert sorted(moved) == sorted(n for n in ids if n.startswith("ground/"))
     for n, i in ids.items():
@@ -351,5 +352,5 @@ def test_the_last_adjustment_moves_a_run_placed_by_an_offset_seed_to_the_aerial_
 
     rec, ids = _anchored_street(patch=False)
     before = {n: np.asarray(rec.images[i].projection_center()) for n, i in ids.items()}
-    assert refine_ground(rec, merge_conf(conf, {"min_observations": 10_000})) == {}
+    assert refine_ground(rec, merge_conf(conf, {"min_shared_observations": 10_000})) == {}
     assert all(np.allclose(rec.images[i].projection_center(), before[n]) for n, i in ids.items())

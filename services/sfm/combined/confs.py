@@ -55,9 +55,10 @@ default_conf: dict[str, Any] = {
         "fix_aerial": True,  # the input model (aerial + PnP-seeded ground) stays fixed; BA refines the rest
         "seed": 0,
     },
-    # the last adjustment (services.sfm.combined.refine): every ground image observing min_observations
-    # points refined with the aerial images held (the seeds too: a PnP pose held fixed places the points
-    # the mapper registers its neighbours on); observations off by max_reproj_px dropped between rounds
+    # the last adjustment (services.sfm.combined.refine): the ground images sharing min_shared_observations
+    # points with other ground images refined with the aerial images held (the seeds too: a PnP pose held
+    # fixed places the points the mapper registers its neighbours on; a lone image stays at its pose);
+    # observations off by max_reproj_px dropped between rounds
     "refine_ground": {
         "enabled": True,
         "loss": "cauchy",  # pycolmap's LossFunctionType: trivial, soft_l1, cauchy
@@ -65,7 +66,7 @@ default_conf: dict[str, Any] = {
         "rounds": 2,  # adjust, then drop observations off by max_reproj_px, and again
         "max_reproj_px": 4.0,
         "min_tri_angle_deg": 1.5,
-        "min_observations": 15,  # ground images observing fewer 3D points stay held
+        "min_shared_observations": 15,
         "max_iterations": 100,
     },
     "georef": True,

@@ -289,6 +289,7 @@ def settle_ground(
     held = registered_ground(seed)
     max_std = conf["max_position_std_m"]
     dropped = drop_ill_determined(rec, held, max_std, cdb.priors, cdb.prior_std, pos_limits)
+    refined = {g: m for g, m in refined.items() if g not in dropped}
     if dropped:
         logger.info(
             "%d ground images registered by the mapper dropped: %s",
