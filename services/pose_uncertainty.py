@@ -83,6 +83,26 @@ def fit_position_std(
     return position_std(pose, K, X, sigma)
 
 
+def held_adjustment(
+    rec: pycolmap.Reconstruction, free: set[int] | dict[int, str]
+) -> tuple[pycolmap.BundleAdjustmentConfig, pycolmap.BundleAdjustmentOptions]:
+    """A bundle adjustment of `rec`'s registered images in which only the poses of the images `free` (ids)
+    move, with the 3D points; every other pose and all intrinsics held constant."""
+    cfg = pycolmap.BundleAdjustmentConfig()
+    for iid, im in rec.images.items():
+        if not im.has_pose:
+            continue
+        cfg.add_image(iid)
+        if iid not in free:
+            cfg.set_constant_rig_from_world_pose(im.frame_id)
+    for cid in rec.cameras:
+        cfg.set_constant_cam_intrinsics(cid)
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = opts.refine_extra_params = opts.refine_principal_point = False
+    opts.print_summary = False
+    return cfg, opts
+
+
 def joint_position_stds(
     rec: pycolmap.Reconstruction, image_ids: set[int] | list[int], min_sigma_px: float = 1.0
 ) -> dict[int, float] | None:
@@ -103,16 +123,7 @@ def joint_position_stds(
     rec.tear_down()  # a copy without the unregistered images (the covariance needs every frame posed)
     for pid in [pid for pid, p in rec.points3D.items() if p.track.length() < 2]:
         rec.delete_point3D(pid)  # a point seen once adds nothing where points are free
-    cfg = pycolmap.BundleAdjustmentConfig()
-    for iid, im in rec.images.items():
-        cfg.add_image(iid)
-        if iid not in free:
-            cfg.set_constant_rig_from_world_pose(im.frame_id)
-    for cid in rec.cameras:
-        cfg.set_constant_cam_intrinsics(cid)
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.refine_focal_length = opts.refine_extra_params = opts.refine_principal_point = False
-    opts.print_summary = False
+    cfg, opts = held_adjustment(rec, free)
     try:
         ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
         cov = pycolmap.estimate_ba_covariance(

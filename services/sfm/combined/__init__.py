@@ -19,7 +19,8 @@ continues from it (`input_path`): it registers the other ground images through t
 triangulates, and bundle-adjusts everything; ground images it registered but the model leaves uncertain
 (their own points do not count for more than the aerial points that place them) or far from their POS
 are dropped, and those the reducer localized are added at their PnP pose where the mapper left them out.
-Before that every ground image is refined with the aerial images held (`refine_ground`: the seeds too).
+Before that the ground images their own pairs chain are refined with the aerial images held
+(`refine_ground`: the seeds too).
 The result is georeferenced like the aerial model (a similarity to the aerial POS in the aerial model's
 ENU frame) and written to out/sparse with report.json (NRI per set, N3P, reprojection error, ground
 camera positions against the PnP and POS).

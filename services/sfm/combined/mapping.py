@@ -271,8 +271,8 @@ def settle_ground(
     pos_limits: dict,
     conf: dict,
 ) -> tuple[dict[str, str], list[str], dict[str, float]]:
-    """After the mapper: (dropped {name: reason}, added [name], refined {name: metres moved}): every ground
-    image refined with the aerial images held (refine_ground), the ground images the mapper registered
+    """After the mapper: (dropped {name: reason}, added [name], refined {name: metres moved}): the chained
+    ground images refined with the aerial images held (refine_ground), the ground images the mapper registered
     that the model leaves uncertain or that disagree with their POS dropped (drop_ill_determined; the
     seeds stay), then those the reducer localized added at their PnP pose (add_pnp_images)."""
     refined = {}

@@ -1,5 +1,6 @@
-"""The combined SfM's last adjustment: every ground image refined against all its observations, the
-aerial images held where the aerial SfM and its georeference put them.
+"""The combined SfM's last adjustment: the ground images tied to other ground images by their own points
+refined against all their observations, the aerial images held where the aerial SfM and its georeference
+put them.
 
 The mapper holds the frames of its input model fixed: the aerial images, and the ground images seeded at
 the reducer's PnP pose. A seed's PnP pose rests on the rendered views' points alone and can be decimetres
@@ -19,18 +20,9 @@ import logging
 import numpy as np
 import pycolmap
 
+from services.pose_uncertainty import held_adjustment
+
 logger = logging.getLogger("midview.combined_sfm")
-
-
-def _ba_options(conf: dict) -> pycolmap.BundleAdjustmentOptions:
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.refine_focal_length = opts.refine_extra_params = opts.refine_principal_point = False
-    opts.print_summary = False
-    loss = str(conf["loss"]).upper()
-    opts.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss)
-    opts.ceres.loss_function_scale = float(conf["loss_scale_px"])
-    opts.ceres.solver_options.max_num_iterations = int(conf["max_iterations"])
-    return opts
 
 
 def _chained_ground(rec: pycolmap.Reconstruction, min_shared: int) -> dict[int, str]:
@@ -56,17 +48,11 @@ def refine_ground(rec: pycolmap.Reconstruction, conf: dict) -> dict[str, float]:
     if not free:
         return {}
     before = {i: np.asarray(rec.images[i].projection_center()) for i in free}
-    opts = _ba_options(conf)
     for _ in range(int(conf["rounds"])):
-        cfg = pycolmap.BundleAdjustmentConfig()
-        for im in rec.images.values():
-            if not im.has_pose:
-                continue
-            cfg.add_image(im.image_id)
-            if im.image_id not in free:
-                cfg.set_constant_rig_from_world_pose(im.frame_id)
-        for cid in rec.cameras:
-            cfg.set_constant_cam_intrinsics(cid)
+        cfg, opts = held_adjustment(rec, free)
+        opts.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, str(conf["loss"]).upper())
+        opts.ceres.loss_function_scale = float(conf["loss_scale_px"])
+        opts.ceres.solver_options.max_num_iterations = int(conf["max_iterations"])
         summary = pycolmap.create_default_bundle_adjuster(opts, cfg, rec).solve()
         filtered = pycolmap.ObservationManager(rec).filter_all_points3D(
             float(conf["max_reproj_px"]), float(conf["min_tri_angle_deg"])
