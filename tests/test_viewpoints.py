@@ -475,3 +475,28 @@ def test_paper_views_are_chosen_by_what_they_see_of_the_ground_cameras_surface()
     assert [v.name for v in vp.select_paper(vp.plan_paper(scene, target), scene, target, 1)]
     with pytest.raises(ValueError, match="unknown paper.relevance"):
         vp.select_paper(paper, scene, merge_conf(conf, {"paper": {"relevance": "nearest"}}), 1)
+
+
+def test_a_ground_cameras_target_is_where_the_aerial_cameras_stop_seeing_through():
+    """services.views.rays.carve_ray: the ground camera's own depth probe sees a floater 2 m ahead (a
+    CPU-trained 3DGS seen from the street); the aerial cameras' depth sees the street free up to the wall,
+    and the target lands on the wall. Without the aerial depth the planner falls back to look-ahead."""
+    from services.views.ground_aware import ground_target
+
+    ground = {"ground/G0001.jpg": pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)}
+    scene = make_scene(ground)
+
+    def depth_fn(camera: Camera, pose: Pose) -> np.ndarray:
+        if pose.center[2] < 5.0:  # the ground camera's probe: a floater
+            return np.full((camera.height, camera.width), 2.0, np.float32)
+        shifted = pose.center - np.array([0.0, 5.0, 0.0])  # raycast's wall moved to y = 5
+        return raycast(camera, Pose(pose.R, -pose.R @ shifted))
+
+    scene.depth_fn = depth_fn
+    conf = vp.confs["ground-aware"]
+    T, how = ground_target("ground/G0001.jpg", scene, conf)
+    assert how == "carved"
+    assert T[1] == pytest.approx(5.0, abs=conf["target"]["carve"]["margin_m"] + 0.3)
+    off = merge_conf(conf, {"target": {"carve": {"enabled": False}}})
+    T, how = ground_target("ground/G0001.jpg", make_scene(ground), off)
+    assert how == "look-ahead"

@@ -112,3 +112,39 @@ def _horizontal(v: np.ndarray) -> np.ndarray | None:
     h = np.array([v[0], v[1], 0.0])
     n = np.linalg.norm(h)
     return h / n if n > 1e-6 else None
+
+
+def carve_ray(
+    center: np.ndarray,
+    direction: np.ndarray,
+    depth_maps: list[tuple[np.ndarray, Pose, np.ndarray]],
+    t_min: float,
+    t_max: float,
+    step: float,
+    margin: float,
+    free_fraction: float,
+    min_views: int,
+) -> float | None:
+    """The first distance along the ray (center + t direction, t in [t_min, t_max) by `step`) where the
+    scene is no longer free space: fewer than `free_fraction` of the depth maps [(K, cam_from_world pose,
+    z-depth (H, W), 0 where nothing)] that see the point (at least `min_views`) see `margin` beyond it.
+    The maps are the aerial cameras' renders, where a 3DGS trained on them is at its best; a ray from a
+    ground camera meets the facade it looks at where they stop seeing through. None: it meets nothing."""
+    ts = np.arange(t_min, t_max, step)
+    P = center[None] + ts[:, None] * direction[None]
+    n_view, n_free = np.zeros(len(ts)), np.zeros(len(ts))
+    for K, pose, D in depth_maps:
+        Xc = P @ pose.R.T + pose.t
+        z = Xc[:, 2]
+        ok = z > 1e-6
+        uv = np.full((len(ts), 2), -1.0)
+        uv[ok] = (Xc[ok, :2] / z[ok, None]) @ K[:2, :2].T + K[:2, 2]
+        u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        ok &= (u >= 0) & (v >= 0) & (u < D.shape[1]) & (v < D.shape[0])
+        dd = np.zeros(len(ts))
+        dd[ok] = D[v[ok], u[ok]]
+        seen = ok & (dd > 0)
+        n_view += seen
+        n_free += seen & (z < dd - margin)
+    hit = np.flatnonzero((n_view >= min_views) & (n_free < free_fraction * n_view))
+    return float(ts[hit[0]]) if len(hit) else None

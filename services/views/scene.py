@@ -17,7 +17,14 @@ from services.geometry import look_at, optical_axis, pos_in_frame
 from services.pos import LocalFrame, PosRecord, read_pos
 from services.sfm import read_georef_frame
 from services.views.confs import _BASE
-from services.views.rays import depth_at_center, probe_camera, ray_plane, ray_target_points, unproject
+from services.views.rays import (
+    carve_ray,
+    depth_at_center,
+    probe_camera,
+    ray_plane,
+    ray_target_points,
+    unproject,
+)
 
 logger = logging.getLogger("midview.viewpoints")
 
@@ -38,6 +45,7 @@ class Scene:
     terrain_z: float
     depth_fn: DepthFn | None = None
     ground_heights: dict[str, dict] = field(default_factory=dict)  # see place_ground_on_terrain
+    _aerial_maps: dict[int, list] = field(default_factory=dict, repr=False)  # aerial_depth_maps' cache
 
     def target(
         self, camera: Camera, pose: Pose, conf: dict, min_dist: float = 0.0, max_dist: float = np.inf
@@ -58,6 +66,32 @@ class Scene:
         if t is not None and min_dist <= t <= max_dist:
             return c + t * d, "terrain"
         return None, "none"
+
+    def aerial_depth_maps(self, width: int) -> list[tuple[np.ndarray, Pose, np.ndarray]]:
+        """[(K, pose, z-depth)] of every aerial camera (depth probes `width` pixels wide, rendered once);
+        [] without a depth probe."""
+        if width not in self._aerial_maps:
+            maps = []
+            for a in sorted(self.aerial_poses):
+                probe = self.depth_probe(self.aerial_cameras[a], self.aerial_poses[a], width)
+                if probe is not None:
+                    maps.append((probe[0].K, self.aerial_poses[a], probe[1]))
+            self._aerial_maps[width] = maps
+        return self._aerial_maps[width]
+
+    def carved_target(
+        self, camera: Camera, pose: Pose, conf: dict, min_dist: float, max_dist: float
+    ) -> np.ndarray | None:
+        """Where the principal ray leaves the free space the aerial cameras' depth carves (rays.carve_ray,
+        conf["target"]["carve"]); None without a depth probe or where it meets nothing."""
+        cc = conf["target"]["carve"]
+        maps = self.aerial_depth_maps(int(cc["width"])) if cc["enabled"] else []
+        if not maps:
+            return None
+        c, d = pose.center, optical_axis(pose)
+        args = (cc["step_m"], cc["margin_m"], cc["free_fraction"], cc["min_views"])
+        t = carve_ray(c, d, maps, min_dist, max_dist, *args)
+        return None if t is None else c + t * d
 
     def occluded(self, center: np.ndarray, target: np.ndarray, camera: Camera, ratio: float) -> bool:
         """Whether something lies between `center` and `target` (depth probe, else sparse points)."""
