@@ -493,7 +493,7 @@ def test_a_ground_cameras_target_is_where_the_aerial_cameras_stop_seeing_through
         return raycast(camera, Pose(pose.R, -pose.R @ shifted))
 
     scene.depth_fn = depth_fn
-    conf = vp.confs["ground-aware"]
+    conf = merge_conf(vp.confs["ground-aware"], {"target": {"carve": {"enabled": True}}})
     T, how = ground_target("ground/G0001.jpg", scene, conf)
     assert how == "carved"
     assert T[1] == pytest.approx(5.0, abs=conf["target"]["carve"]["margin_m"] + 0.3)
