@@ -480,7 +480,8 @@ def test_paper_views_are_chosen_by_what_they_see_of_the_ground_cameras_surface()
 def test_a_ground_cameras_target_is_where_the_aerial_cameras_stop_seeing_through():
     """services.views.rays.carve_ray: the ground camera's own depth probe sees a floater 2 m ahead (a
     CPU-trained 3DGS seen from the street); the aerial cameras' depth sees the street free up to the wall,
-    and the target lands on the wall. Without the aerial depth the planner falls back to look-ahead."""
+    and the target lands on the wall. With carving off (the default) the planner falls back to
+    look-ahead."""
     from services.views.ground_aware import ground_target
 
     ground = {"ground/G0001.jpg": pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)}

@@ -18,9 +18,9 @@ logger = logging.getLogger("midview.viewpoints")
 
 
 def ground_target(g: str, scene: Scene, conf: dict) -> tuple[np.ndarray, str]:
-    """The ground camera's target: where its optical axis leaves the space the aerial cameras' depth
-    carves free (Scene.carved_target), else its optical axis against the scene (its own depth probe,
-    the sparse points, the terrain), else `look_ahead_m` ahead."""
+    """The ground camera's target: with conf["target"]["carve"] enabled, where its optical axis leaves
+    the space the aerial cameras' depth carves free (Scene.carved_target); else its optical axis against
+    the scene (its own depth probe, the sparse points, the terrain), else `look_ahead_m` ahead."""
     gc = conf["ground"]
     cam, pose = scene.ground_cameras[g], scene.ground_poses[g]
     T = scene.carved_target(cam, pose, conf, gc["min_target_m"], gc["max_target_m"])

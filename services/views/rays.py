@@ -134,13 +134,9 @@ def carve_ray(
     P = center[None] + ts[:, None] * direction[None]
     n_view, n_free = np.zeros(len(ts)), np.zeros(len(ts))
     for K, pose, D in depth_maps:
-        Xc = P @ pose.R.T + pose.t
-        z = Xc[:, 2]
-        ok = z > 1e-6
-        uv = np.full((len(ts), 2), -1.0)
-        uv[ok] = (Xc[ok, :2] / z[ok, None]) @ K[:2, :2].T + K[:2, 2]
+        uv, z = pose.project(K, P)
         u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-        ok &= (u >= 0) & (v >= 0) & (u < D.shape[1]) & (v < D.shape[0])
+        ok = (z > 1e-6) & (u >= 0) & (v >= 0) & (u < D.shape[1]) & (v < D.shape[0])
         dd = np.zeros(len(ts))
         dd[ok] = D[v[ok], u[ok]]
         seen = ok & (dd > 0)
