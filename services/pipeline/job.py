@@ -362,7 +362,9 @@ class Job:
         else:
             base = views.SplatRenderer(self.splat.dir, self.settings["splat_backend"], min_alpha)
         if conf["colour"] == "source":  # without colour: the planes' depth for the planner's probes
-            return views.SourceRenderer(base, self.sfm.sparse, self.image_dir, conf, colour=colour)
+            return views.SourceRenderer(
+                base, self.sfm.sparse, self.image_dir, conf, colour=colour, stereo_cache=self.root / "stereo"
+            )
         return base
 
     def render_conf(self) -> dict:

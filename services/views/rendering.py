@@ -34,6 +34,8 @@ from services.views.proxy import PlaneProxy
 from services.views.proxy import confs as proxy_confs
 from services.views.source_colour import SourceImages
 from services.views.source_colour import confs as source_confs
+from services.views.stereo import StereoSurface
+from services.views.stereo import confs as stereo_confs
 from shared.logging import stage
 
 logger = logging.getLogger("midview.views")
@@ -49,6 +51,11 @@ confs: dict[str, dict[str, Any]] = {
         "colour": "source",
         "proxy": dict(proxy_confs["default"]),  # services.views.proxy
         "source": dict(source_confs["default"]),  # services.views.source_colour
+        # the views' depth: "proxy" (the planes of the sparse model, the 3DGS's surfaces the aerial
+        # images do not see through) or "stereo" (the TSDF of the aerial images' pairwise dense stereo,
+        # services.views.stereo; the proxy's where it has no surface)
+        "depth": "proxy",
+        "stereo": dict(stereo_confs["default"]),
     },
 }
 
@@ -103,7 +110,9 @@ class SourceRenderer:
         image_dir: str | Path,
         conf: dict | None = None,
         colour: bool = True,
+        stereo_cache: str | Path | None = None,
     ):
+        """`stereo_cache`: a folder where the stereo surface (conf depth "stereo") is kept for reuse."""
         import pycolmap
 
         c = {**confs["default"], **(conf or {})}
@@ -111,17 +120,41 @@ class SourceRenderer:
         self.base = base
         self.proxy = PlaneProxy.from_model(rec, c["proxy"])
         self.sources = SourceImages(rec, image_dir, c["source"])
+        self.stereo = None
+        if c["depth"] == "stereo":
+            self.stereo = (
+                StereoSurface.cached(sparse_dir, image_dir, c["stereo"], stereo_cache)
+                if stereo_cache is not None
+                else StereoSurface.build(rec, image_dir, c["stereo"])
+            )
+        elif c["depth"] != "proxy":
+            raise ValueError(f"unknown views' depth {c['depth']!r} (proxy, stereo)")
         self.colour = colour
         self.last_stats: dict = {}
 
+    def _depth(self, camera: Camera, pose: Pose) -> np.ndarray:
+        """The depth the sources' visibility is tested against: the stereo surface's, else the 3DGS's."""
+        depth = self.base.render(camera, pose)[1]
+        if self.stereo is None:
+            return depth
+        return _nearest(self.stereo.depth(camera, pose), depth)
+
     def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         rgb, depth = self.base.render(camera, pose)
-        depth_fn = lambda c, p: self.base.render(c, p)[1]  # noqa: E731
+        depth_fn = self._depth
         depth = self.proxy.fuse(camera, pose, depth, lambda X: self.sources.seen_through(X, depth_fn))
+        if self.stereo is not None:
+            depth = _nearest(self.stereo.depth(camera, pose), depth)
         if not self.colour:
             return rgb, depth
         rgb, depth, self.last_stats = self.sources.colour(camera, pose, depth, rgb, depth_fn)
         return rgb, depth
+
+
+def _nearest(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The nearer of two depth maps (H, W) where both have a surface, else the one that has (0: none)."""
+    both = (a > 0) & (b > 0)
+    return np.where(both, np.minimum(a, b), np.maximum(a, b)).astype(np.float32)
 
 
 class BlockRenderer(SplatRenderer):
