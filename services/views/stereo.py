@@ -136,6 +136,8 @@ def pair_depth(
     R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
         Ka, Da, Kb, Db, size, R, T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0
     )
+    if not 0.5 <= P1[0, 0] / Ka[0, 0] <= 2.0:  # a rectification that blows the images up: degenerate
+        return None
     # the disparity range of the shared sparse points in the rectified pair
     ids_a = {p.point3D_id for p in ima.points2D if p.has_point3D()}
     ids = [p.point3D_id for p in imb.points2D if p.has_point3D() and p.point3D_id in ids_a]
@@ -222,7 +224,12 @@ def _fuse(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]], c: dict, capa
             logger.info("stereo: %d voxel blocks are not enough; again with twice as many", capacity)
             return None
         vbg.integrate(blocks, img, Kt, Et, 1.0, c["max_depth_m"], trunc)
-    return vbg.extract_triangle_mesh(weight_threshold=float(c["min_weight"]))
+    # open3d's own estimate of the vertex count falls short on large scenes (a crash): 13 vertices a
+    # block were measured on `small`, room is made for 40
+    blocks = vbg.hashmap().size()
+    return vbg.extract_triangle_mesh(
+        weight_threshold=float(c["min_weight"]), estimated_vertex_number=40 * blocks
+    )
 
 
 class StereoSurface:
