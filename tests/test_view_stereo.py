@@ -1,5 +1,6 @@
 """The aerial images' dense stereo surface (services.views.stereo) on an analytic scene: a textured ground
-plane with a raised textured platform, photographed by nadir cameras of two flight lines. The surface
+plane with a raised textured platform, photographed by nadir cameras of two flight lines flown in
+opposite directions (the images of one turned half a turn against the other's). The surface
 ray cast at a view none of the images was taken from gives the true depth of both levels; pairs along
 the optical axis (their epipole inside the image) are not matched."""
 
@@ -12,7 +13,7 @@ import pytest
 
 from services.colmap_model import Camera, Pose
 from services.splat.render import look_at
-from services.views.stereo import StereoSurface, stereo_pairs
+from services.views.stereo import StereoSurface, confs, pair_depth, stereo_pairs
 
 PX_PER_M = 40.0
 HALF_M = 30.0
@@ -63,7 +64,8 @@ def survey(tmp_path_factory):
     poses = {}
     for i, (x, y) in enumerate([(-8, -6), (0, -6), (8, -6), (-8, 6), (0, 6), (8, 6)], start=1):
         C = np.array([x, y, 40.0])
-        poses[i] = look_at(C, C + np.array([0.0, 0.01, -1.0]))
+        # the second flight line is flown the other way: its images are turned half a turn
+        poses[i] = look_at(C, C + np.array([0.0, 0.01 if y < 0 else -0.01, -1.0]))
         name = f"aerial/A{i}.jpg"
         (root / "images" / "aerial").mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(root / "images" / name), _image(cam, poses[i], textures))
@@ -97,7 +99,7 @@ def survey(tmp_path_factory):
     return root, cam
 
 
-def test_pairs_have_sideways_baselines(survey):
+def test_pairs_have_sideways_baselines_and_turned_pairs_are_matched(survey):
     root, _ = survey
     rec = pycolmap.Reconstruction(str(root / "sparse"))
     pairs = stereo_pairs(
@@ -112,6 +114,23 @@ def test_pairs_have_sideways_baselines(survey):
     )
     assert pairs and all(n >= 20 for _, _, n in pairs)
     assert {i for a, b, _ in pairs for i in (a, b)} == set(rec.images)
+
+
+def test_a_pair_across_the_flight_lines_turned_half_a_turn_gives_the_true_depth(survey):
+    root, _ = survey
+    rec = pycolmap.Reconstruction(str(root / "sparse"))
+    assert (
+        rec.images[1].cam_from_world().rotation.matrix()[0]
+        @ rec.images[4].cam_from_world().rotation.matrix()[0]
+        < 0
+    )
+    depth, K, Rt = pair_depth(rec, 1, 4, root / "images", {**confs["default"], "width": 640})
+    H, W = depth.shape
+    cam = Camera("PINHOLE", W, H, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    truth, _ = _true_depth(cam, Pose(Rt[:, :3], Rt[:, 3]))
+    ok = depth > 0
+    assert ok.mean() > 0.3
+    assert np.median(np.abs(depth[ok] - truth[ok]) / truth[ok]) < 0.01
 
 
 def test_the_surface_gives_the_true_depth_at_a_new_view(survey):

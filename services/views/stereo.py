@@ -123,20 +123,30 @@ def pair_depth(
     pixel convention) and its world-to-camera [R | t] (3, 4); None when the pair's disparity range
     cannot be found."""
     ima, imb = rec.images[a], rec.images[b]
-    Ka, Da = _dist_coeffs(ima.camera)
-    Kb, Db = _dist_coeffs(imb.camera)
-    s = min(1.0, conf["width"] / ima.camera.width)
-    S = np.diag([s, s, 1.0])
     to_cv = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # COLMAP -> OpenCV pixels
-    Ka, Kb = to_cv @ S @ Ka, to_cv @ S @ Kb
-    size = (int(round(ima.camera.width * s)), int(round(ima.camera.height * s)))
+    scaled = []
+    for im in (ima, imb):
+        K, D = _dist_coeffs(im.camera)
+        s = min(1.0, conf["width"] / im.camera.width)
+        size = (int(round(im.camera.width * s)), int(round(im.camera.height * s)))
+        scaled.append((to_cv @ np.diag([s, s, 1.0]) @ K, D, size))
+    (Ka, Da, size), (Kb, Db, size_b) = scaled
     pa, pb = Pose.of_image(ima), Pose.of_image(imb)
+    # cameras turned half a turn against each other (flight lines flown both ways): the second image is
+    # turned back first, else the rectification mirrors them (a negative focal length)
+    turn = float(pa.R[0] @ pb.R[0]) < 0
+    if turn:
+        F = np.diag([-1.0, -1.0, 1.0])
+        pb = Pose(F @ pb.R, F @ pb.t)
+        Kb = Kb.copy()
+        Kb[0, 2], Kb[1, 2] = size_b[0] - 1 - Kb[0, 2], size_b[1] - 1 - Kb[1, 2]
+        Db = Db * np.array([1.0, 1.0, -1.0, -1.0, 1.0])  # tangential terms change sign
     R = pb.R @ pa.R.T
     T = pb.t - R @ pa.t
     R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
         Ka, Da, Kb, Db, size, R, T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0
     )
-    if not 0.5 <= P1[0, 0] / Ka[0, 0] <= 2.0:  # a rectification that blows the images up: degenerate
+    if not 0.25 <= P1[0, 0] / Ka[0, 0] <= 4.0:  # a rectification that blows the images up: degenerate
         return None
     # the disparity range of the shared sparse points in the rectified pair
     ids_a = {p.point3D_id for p in ima.points2D if p.has_point3D()}
@@ -155,11 +165,13 @@ def pair_depth(
     if num > conf["max_disparities"]:
         return None
     imgs = []
-    for im, K, D, Rr, P in ((ima, Ka, Da, R1, P1), (imb, Kb, Db, R2, P2)):
+    for im, K, D, Rr, P, sz, rot in ((ima, Ka, Da, R1, P1, size, False), (imb, Kb, Db, R2, P2, size_b, turn)):
         grey = cv2.imread(str(image_dir / im.name), cv2.IMREAD_GRAYSCALE)
         if grey is None:
             raise FileNotFoundError(f"stereo: source image {image_dir / im.name} is missing")
-        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+        grey = cv2.resize(grey, sz, interpolation=cv2.INTER_AREA)
+        if rot:
+            grey = cv2.rotate(grey, cv2.ROTATE_180)
         m1, m2 = cv2.initUndistortRectifyMap(K, D, Rr, P, size, cv2.CV_32FC1)
         rect = cv2.remap(grey, m1, m2, cv2.INTER_LINEAR)
         imgs.append(np.ascontiguousarray(rect.T) if axis == 1 else rect)
@@ -224,12 +236,11 @@ def _fuse(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]], c: dict, capa
             logger.info("stereo: %d voxel blocks are not enough; again with twice as many", capacity)
             return None
         vbg.integrate(blocks, img, Kt, Et, 1.0, c["max_depth_m"], trunc)
-    # open3d's own estimate of the vertex count falls short on large scenes (a crash): 13 vertices a
-    # block were measured on `small`, room is made for 40
-    blocks = vbg.hashmap().size()
-    return vbg.extract_triangle_mesh(
-        weight_threshold=float(c["min_weight"]), estimated_vertex_number=40 * blocks
-    )
+    # open3d's own estimate of the vertex count falls short on large meshes (a crash); a vertex lies on
+    # an edge of a voxel near the surface (|tsdf| < 1, weight above the threshold): at most 3 per voxel
+    w = float(c["min_weight"])
+    near = (np.abs(vbg.attribute("tsdf").numpy()) < 1.0) & (vbg.attribute("weight").numpy() >= w)
+    return vbg.extract_triangle_mesh(weight_threshold=w, estimated_vertex_number=3 * int(near.sum()) + 1024)
 
 
 class StereoSurface:
