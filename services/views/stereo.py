@@ -116,6 +116,44 @@ def stereo_pairs(rec: pycolmap.Reconstruction, conf: dict) -> list[tuple[int, in
     return [(a, b, shared[(a, b)]) for a, b in sorted(chosen)]
 
 
+def _disparity_range(
+    rec: pycolmap.Reconstruction, ima, imb, pa: Pose, pb: Pose, rect: tuple[np.ndarray, ...]
+) -> tuple[int, int, int] | None:
+    """(rectified axis 0 or 1, smallest disparity, number of disparities, a multiple of 16) that hold
+    the sparse points both images see, with a margin; None with fewer than 10 such points."""
+    R1, R2, P1, P2 = rect
+    ids_a = {p.point3D_id for p in ima.points2D if p.has_point3D()}
+    ids = [p.point3D_id for p in imb.points2D if p.has_point3D() and p.point3D_id in ids_a]
+    if len(ids) < 10:
+        return None
+    X = np.array([rec.points3D[i].xyz for i in ids])
+    axis = 0 if abs(P2[0, 3]) >= abs(P2[1, 3]) else 1  # horizontal or vertical rectification
+    xa = np.c_[(X @ pa.R.T + pa.t) @ R1.T, np.ones(len(X))] @ P1.T
+    xb = ((X @ pb.R.T + pb.t) @ R2.T) @ P2[:, :3].T  # P2's last column is for points in frame 1
+    d = xa[:, axis] / xa[:, 2] - xb[:, axis] / xb[:, 2]
+    lo, hi = np.percentile(d, [1, 99])
+    span = hi - lo
+    min_d = int(np.floor(lo - 0.1 * span - 8))
+    return axis, min_d, int(np.ceil((hi + 0.1 * span + 8 - min_d) / 16.0)) * 16
+
+
+def _sgbm(conf: dict, num: int):
+    """OpenCV's semi-global matcher searching disparities [0, num)."""
+    bs = int(conf["block_size"])
+    return cv2.StereoSGBM_create(
+        minDisparity=0,
+        numDisparities=num,
+        blockSize=bs,
+        P1=8 * bs * bs,
+        P2=32 * bs * bs,
+        disp12MaxDiff=int(conf["disp12_max_diff"]),
+        uniquenessRatio=int(conf["uniqueness"]),
+        speckleWindowSize=int(conf["speckle_window"]),
+        speckleRange=int(conf["speckle_range"]),
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+
+
 def pair_depth(
     rec: pycolmap.Reconstruction, a: int, b: int, image_dir: Path, conf: dict
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -148,20 +186,10 @@ def pair_depth(
     )
     if not 0.25 <= P1[0, 0] / Ka[0, 0] <= 4.0:  # a rectification that blows the images up: degenerate
         return None
-    # the disparity range of the shared sparse points in the rectified pair
-    ids_a = {p.point3D_id for p in ima.points2D if p.has_point3D()}
-    ids = [p.point3D_id for p in imb.points2D if p.has_point3D() and p.point3D_id in ids_a]
-    if len(ids) < 10:
+    rng = _disparity_range(rec, ima, imb, pa, pb, (R1, R2, P1, P2))
+    if rng is None:
         return None
-    X = np.array([rec.points3D[i].xyz for i in ids])
-    axis = 0 if abs(P2[0, 3]) >= abs(P2[1, 3]) else 1  # horizontal or vertical rectification
-    xa = np.c_[(X @ pa.R.T + pa.t) @ R1.T, np.ones(len(X))] @ P1.T
-    xb = ((X @ pb.R.T + pb.t) @ R2.T) @ P2[:, :3].T  # P2's last column is for points in frame 1
-    d = xa[:, axis] / xa[:, 2] - xb[:, axis] / xb[:, 2]  # the sparse points' disparities
-    lo, hi = np.percentile(d, [1, 99])
-    span = hi - lo
-    min_d = int(np.floor(lo - 0.1 * span - 8))
-    num = int(np.ceil((hi + 0.1 * span + 8 - min_d) / 16.0)) * 16
+    axis, min_d, num = rng
     if num > conf["max_disparities"]:
         return None
     imgs = []
@@ -179,20 +207,7 @@ def pair_depth(
     # only num pixels unmatched at the left border
     h, w = imgs[1].shape
     imgs[1] = cv2.warpAffine(imgs[1], np.float32([[1, 0, min_d], [0, 1, 0]]), (w, h))
-    bs = int(conf["block_size"])
-    sgbm = cv2.StereoSGBM_create(
-        minDisparity=0,
-        numDisparities=num,
-        blockSize=bs,
-        P1=8 * bs * bs,
-        P2=32 * bs * bs,
-        disp12MaxDiff=int(conf["disp12_max_diff"]),
-        uniquenessRatio=int(conf["uniqueness"]),
-        speckleWindowSize=int(conf["speckle_window"]),
-        speckleRange=int(conf["speckle_range"]),
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
-    raw = sgbm.compute(imgs[0], imgs[1])
+    raw = _sgbm(conf, num).compute(imgs[0], imgs[1])
     disp = raw.astype(np.float32) / 16.0 + min_d
     if axis == 1:
         disp = np.ascontiguousarray(disp.T)
