@@ -2,9 +2,9 @@
 
 The 3DGS's depth at the intermediate views is its weakest part on the CPU (floaters, bumps, see-through
 facades) and the plane proxy (services.views.proxy) has no plane where the sparse model has no points.
-Classic two-view dense stereo does not depend on either: for every aerial image the neighbour that sees
-the most of the same sparse points from a sideways baseline (its epipole far outside the image) forms a
-pair; the pair is rectified (cv2.stereoRectify on the COLMAP poses), semi-global matching
+Classic two-view dense stereo does not depend on either: every aerial image forms pairs with the
+neighbours that see the most of the same sparse points from a sideways baseline (the epipole far outside
+the image); the pair is rectified (cv2.stereoRectify on the COLMAP poses), semi-global matching
 (cv2.StereoSGBM, disparity range from the pair's sparse points, left-right check) gives a disparity map,
 and its depth maps of all pairs are fused in a truncated signed distance volume (open3d, Curless &
 Levoy 1996): a voxel's surface is what the images agree on, a floater seen through by other images is
@@ -61,9 +61,7 @@ def _dist_coeffs(cam: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
     """(K (3, 3), OpenCV distortion coefficients) of a COLMAP camera (pinhole and radial models)."""
     p = np.asarray(cam.params, float)
     name = cam.model.name
-    if name in ("SIMPLE_PINHOLE",):
-        return cam.calibration_matrix(), np.zeros(5)
-    if name == "PINHOLE":
+    if name in ("SIMPLE_PINHOLE", "PINHOLE"):
         return cam.calibration_matrix(), np.zeros(5)
     if name == "SIMPLE_RADIAL":
         return cam.calibration_matrix(), np.array([p[3], 0, 0, 0, 0])
@@ -84,15 +82,10 @@ def stereo_pairs(rec: pycolmap.Reconstruction, conf: dict) -> list[tuple[int, in
             for b in range(a + 1, len(ids)):
                 shared[(ids[a], ids[b])] = shared.get((ids[a], ids[b]), 0) + 1
     poses = {i: Pose.of_image(im) for i, im in rec.images.items() if im.has_pose}
-    depth = {}
-    for i, im in rec.images.items():
-        if i in poses:
-            z = [
-                poses[i].project(np.eye(3), rec.points3D[p.point3D_id].xyz[None])[1][0]
-                for p in im.points2D
-                if p.has_point3D()
-            ]
-            depth[i] = float(np.median(z)) if z else 0.0
+    depth = {}  # median depth of each image's sparse points
+    for i, pose in poses.items():
+        X = [rec.points3D[p.point3D_id].xyz for p in rec.images[i].points2D if p.has_point3D()]
+        depth[i] = float(np.median((np.asarray(X) @ pose.R[2]) + pose.t[2])) if X else 0.0
     cos_axis = np.cos(np.radians(conf["max_axis_angle_deg"]))
     chosen: set[tuple[int, int]] = set()
     partners: dict[int, list[tuple[int, int]]] = {i: [] for i in poses}
@@ -208,13 +201,10 @@ def pair_depth(
     h, w = imgs[1].shape
     imgs[1] = cv2.warpAffine(imgs[1], np.float32([[1, 0, min_d], [0, 1, 0]]), (w, h))
     raw = _sgbm(conf, num).compute(imgs[0], imgs[1])
-    disp = raw.astype(np.float32) / 16.0 + min_d
-    if axis == 1:
-        disp = np.ascontiguousarray(disp.T)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = -P2[axis, 3] / disp  # P2[axis, 3] = f * baseline along the rectified axis
     if axis == 1:
         raw = np.ascontiguousarray(raw.T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = -P2[axis, 3] / (raw.astype(np.float32) / 16.0 + min_d)  # P2[axis, 3]: f * baseline
     ok = (raw >= 0) & np.isfinite(depth) & (depth > 0) & (depth < conf["max_depth_m"])
     depth = np.where(ok, depth, 0.0).astype(np.float32)
     Rt = np.c_[R1 @ pa.R, R1 @ pa.t]
