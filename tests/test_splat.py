@@ -178,6 +178,10 @@ def test_render_depth_of_a_wall():
     np.testing.assert_allclose(out["color"].mean((0, 1)), [0.8, 0.4, 0.2], atol=0.03)
     ref = render(model, cam, Pose(np.eye(3), np.zeros(3)), backend="reference")
     np.testing.assert_allclose(out["color"], ref["color"], atol=1e-4)
+    # the wall 2 m nearer than the far plane and 2 m beyond the near plane: seen; outside either: gone
+    for near, far, seen in ((0.01, 7.0, True), (0.01, 3.0, False), (3.0, 1e10, True), (7.0, 1e10, False)):
+        out = render(model, cam, Pose(np.eye(3), np.zeros(3)), backend="cpu", near_plane=near, far_plane=far)
+        assert (out["alpha"].min() > 0.99) if seen else (out["alpha"].max() == 0.0)
 
 
 def test_lowered_pose_looks_at_the_same_ground_point():

@@ -501,3 +501,20 @@ def test_a_ground_cameras_target_is_where_the_aerial_cameras_stop_seeing_through
     off = merge_conf(conf, {"target": {"carve": {"enabled": False}}})
     T, how = ground_target("ground/G0001.jpg", make_scene(ground), off)
     assert how == "look-ahead"
+
+
+def test_a_ground_cameras_depth_probe_starts_past_a_floater_in_front_of_it():
+    """A screen 1.5 m in front of a street-level camera (like the floaters a 3DGS trained on aerial
+    images leaves there) hides the wall 25 m ahead from a probe at the camera; the probe that stands
+    min_target_m ahead on the principal ray sees the wall (target.probe_from_min). Without it the planner
+    falls back to look-ahead."""
+    from services.views.ground_aware import ground_target
+
+    g = "ground/G0001.jpg"
+    scene = make_scene({g: pose_ypr([0.0, -25.0, 1.6], 0.0, 0.0)})
+    scene.depth_fn = lambda camera, pose: raycast(camera, pose, hole=(-23.5, 50.0, 50.0))
+    conf = merge_conf(vp.confs["ground-aware"], {"target": {"probe_from_min": True}})
+    T, how = ground_target(g, scene, conf)
+    assert how == "depth" and T[1] == pytest.approx(0.0, abs=0.1)
+    T, how = ground_target(g, scene, merge_conf(conf, {"target": {"probe_from_min": False}}))
+    assert how == "look-ahead" and T[1] == pytest.approx(-25.0 + conf["ground"]["look_ahead_m"], abs=0.1)

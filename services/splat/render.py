@@ -17,7 +17,7 @@ from services.geometry import look_at
 from .backend import rasterization, resolve_backend
 from .model import activated, sh_degree_of, splats_from_tensors
 from .ply import load_ply
-from .projection import viewmat_from_pose
+from .projection import FAR, NEAR, viewmat_from_pose
 
 
 def latest_checkpoint(folder: str | Path) -> Path | None:
@@ -49,9 +49,11 @@ def render(
     backend: str = "auto",
     sh_degree: int | None = None,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    near_plane: float = NEAR,
+    far_plane: float = FAR,
 ) -> dict[str, np.ndarray]:
     """Render `model` (model.py layout) into `camera` (its pinhole part: K; distortion is ignored) at
-    `pose` (cam_from_world).
+    `pose` (cam_from_world); only the Gaussians whose centres' z-depth lies in (near_plane, far_plane).
 
     Returns numpy float32 arrays: color (H, W, 3) in [0, 1] (over `background`), depth (H, W) the expected
     z-depth along the optical axis normalised by alpha (sum w_i z_i / sum w_i; 0 where nothing was hit;
@@ -76,6 +78,8 @@ def render(
             backgrounds=torch.tensor([*background, 0.0], device=dev),
             render_mode="RGB+ED",
             backend=backend,
+            near_plane=near_plane,
+            far_plane=far_plane,
         )
     out, alpha = out.cpu().numpy(), alpha[..., 0].cpu().numpy()
     depth = np.where(alpha > 0, out[..., 3], 0.0).astype(np.float32)

@@ -50,13 +50,17 @@ class Scene:
     def target(
         self, camera: Camera, pose: Pose, conf: dict, min_dist: float = 0.0, max_dist: float = np.inf
     ) -> tuple[np.ndarray | None, str]:
-        """Where the principal ray meets the scene: (T, method) or (None, "none")."""
+        """Where the principal ray meets the scene beyond `min_dist`: (T, method) or (None, "none").
+        With conf["target"]["probe_from_min"] the depth probe stands `min_dist` ahead on the ray, so that
+        what lies nearer (a floater in front of a street-level camera) hides nothing beyond it."""
         c, d = pose.center, optical_axis(pose)
         tc = conf["target"]
-        probe = self.depth_probe(camera, pose, tc["probe_width"])  # a failed probe falls back to the points
+        start = float(min_dist) if tc["probe_from_min"] and np.isfinite(min_dist) else 0.0
+        probe_pose = Pose.from_center(pose.R.T, c + start * d) if start > 0 else pose
+        probe = self.depth_probe(camera, probe_pose, tc["probe_width"])  # a failed probe: the points
         z = depth_at_center(probe[1], tc["depth_window"]) if probe is not None else None
-        if z is not None and min_dist <= z <= max_dist:
-            return c + z * d, "depth"
+        if z is not None and min_dist <= start + z <= max_dist:
+            return c + (start + z) * d, "depth"
         t = ray_target_points(
             c, d, self.points, tc["ray_cone_deg"], tc["min_points"], tc["quantile"], min_dist, max_dist
         )
