@@ -78,25 +78,6 @@ def matchable(conf: dict, feats_gt: dict, rgb: np.ndarray, px: float = 3.0) -> i
     return int((d <= px).sum())
 
 
-class TrueDepthSource:
-    """Views coloured from the aerial images through the true depth (the view's and the sources'), the
-    3DGS's colour where no source sees a pixel: what colour from the aerial images gives at best."""
-
-    def __init__(self, base, sparse: Path, image_dir: Path, scene: Path):
-        from services.views.source_colour import SourceImages
-
-        self.base = base
-        self.truth = GroundTruthRenderer(scene, sparse)
-        self.sources = SourceImages(sparse, image_dir)
-
-    def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
-        fallback, _ = self.base.render(camera, pose)
-        depth = self.truth.render(camera, pose)[1]
-        depth_fn = lambda c, p: self.truth.render(c, p)[1]  # noqa: E731
-        rgb, depth, _ = self.sources.colour(camera, pose, depth, fallback, depth_fn)
-        return rgb, depth
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", type=Path, required=True, help="a synthetic scene folder (midview synth)")
@@ -152,11 +133,10 @@ def main() -> None:
         for label in list(models):
             for kind in args.depths.split(","):
                 name = f"{label}+source" if kind == "proxy" else f"{label}+{kind}"
-                if kind == "truth":
-                    models[name] = TrueDepthSource(models[label], args.sparse, args.source_images, args.scene)
-                    continue
                 conf = {"depth": kind, "stereo": stereo}
-                models[name] = SourceRenderer(models[label], args.sparse, args.source_images, conf)
+                models[name] = SourceRenderer(
+                    models[label], args.sparse, args.source_images, conf, scene=args.scene
+                )
     views = json.loads(args.views.read_text())["views"]
     if args.limit and len(views) > args.limit:
         views = [views[i] for i in np.linspace(0, len(views) - 1, args.limit).round().astype(int)]

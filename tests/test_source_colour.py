@@ -130,3 +130,35 @@ def test_points_the_sources_see_through_are_floaters(plane_survey):
     assert src.seen_through(in_the_air, depth_fn).all()
     assert not src.seen_through(below, depth_fn).any()
     assert not src.seen_through(in_the_air, depth_fn, min_sources=3).any()  # only two sources here
+
+
+def test_views_through_the_true_depth_are_coloured_from_the_aerial_images(tiny_survey):
+    """The views' depth "truth" (bench only: a synthetic scene's): the view's depth is the scene's true
+    depth and its colour comes from the aerial images through it: it follows the truth's own render of
+    the view, with a black fallback colour. Without a scene it is a clear error."""
+    from services.colmap_model import read_model
+    from services.geometry import scaled_camera
+    from services.splat.render import lowered_pose
+    from services.views import GroundTruthRenderer, SourceRenderer
+
+    class Black:
+        name = "black"
+
+        def render(self, camera, pose):
+            h, w = camera.height, camera.width
+            return np.zeros((h, w, 3), np.uint8), np.zeros((h, w), np.float32)
+
+    sparse, images = tiny_survey / "gt" / "sparse", tiny_survey / "images"
+    with pytest.raises(ValueError, match="synthetic scene"):
+        SourceRenderer(Black(), sparse, images, {"depth": "truth"})
+    renderer = SourceRenderer(Black(), sparse, images, {"depth": "truth"}, scene=tiny_survey)
+    truth = GroundTruthRenderer(tiny_survey, sparse)
+    cams, poses = read_model(sparse)
+    for name in sorted(n for n in poses if n.startswith("aerial/"))[:3]:
+        cam, pose = scaled_camera(cams[name], 320), lowered_pose(poses[name], 0.8, 0.0)
+        rgb, depth = renderer.render(cam, pose)
+        true_rgb, true_depth = truth.render(cam, pose)
+        np.testing.assert_array_equal(depth, true_depth)
+        seen = depth > 0
+        assert seen.mean() > 0.5 and (rgb[seen] > 0).any(-1).mean() > 0.8  # not the black fallback
+        assert np.corrcoef(rgb[seen].ravel(), true_rgb[seen].ravel())[0, 1] > 0.4

@@ -363,7 +363,13 @@ class Job:
             base = views.SplatRenderer(self.splat.dir, self.settings["splat_backend"], min_alpha)
         if conf["colour"] == "source":  # without colour: the planes' depth for the planner's probes
             return views.SourceRenderer(
-                base, self.sfm.sparse, self.image_dir, conf, colour=colour, stereo_cache=self.root / "stereo"
+                base,
+                self.sfm.sparse,
+                self.image_dir,
+                conf,
+                colour=colour,
+                stereo_cache=self.root / "stereo",
+                scene=self.settings.get("scene"),
             )
         return base
 

@@ -53,7 +53,8 @@ confs: dict[str, dict[str, Any]] = {
         "source": dict(source_confs["default"]),  # services.views.source_colour
         # the views' depth: "proxy" (the planes of the sparse model, the 3DGS's surfaces the aerial
         # images do not see through) or "stereo" (the TSDF of the aerial images' pairwise dense stereo,
-        # services.views.stereo; the proxy's where it has no surface)
+        # services.views.stereo; the proxy's where it has no surface); bench only: "truth" (a synthetic
+        # scene's true depth, the renderer's `scene`: the bound of colour from the aerial images)
         "depth": "proxy",
         "stereo": dict(stereo_confs["default"]),
     },
@@ -111,8 +112,10 @@ class SourceRenderer:
         conf: dict | None = None,
         colour: bool = True,
         stereo_cache: str | Path | None = None,
+        scene: str | Path | None = None,
     ):
-        """`stereo_cache`: a folder where the stereo surface (conf depth "stereo") is kept for reuse."""
+        """`stereo_cache`: a folder where the stereo surface (conf depth "stereo") is kept for reuse;
+        `scene`: the synthetic scene folder whose true depth conf depth "truth" takes."""
         import pycolmap
 
         c = {**confs["default"], **(conf or {})}
@@ -120,20 +123,27 @@ class SourceRenderer:
         self.base = base
         self.proxy = PlaneProxy.from_model(rec, c["proxy"])
         self.sources = SourceImages(rec, image_dir, c["source"])
-        self.stereo = None
-        if c["depth"] == "stereo":
+        self.stereo = self.truth = None
+        if c["depth"] == "truth":
+            if scene is None:
+                raise ValueError("the views' depth 'truth' needs a synthetic scene (settings.scene)")
+            self.truth = GroundTruthRenderer(scene, sparse_dir)
+        elif c["depth"] == "stereo":
             self.stereo = (
                 StereoSurface.cached(sparse_dir, image_dir, c["stereo"], stereo_cache)
                 if stereo_cache is not None
                 else StereoSurface.build(rec, image_dir, c["stereo"])
             )
         elif c["depth"] != "proxy":
-            raise ValueError(f"unknown views' depth {c['depth']!r} (proxy, stereo)")
+            raise ValueError(f"unknown views' depth {c['depth']!r} (proxy, stereo, truth)")
         self.colour = colour
         self.last_stats: dict = {}
 
     def _depth(self, camera: Camera, pose: Pose) -> np.ndarray:
-        """The depth the sources' visibility is tested against: the stereo surface's, else the 3DGS's."""
+        """The depth the sources' visibility is tested against: the true depth, the stereo surface's, else
+        the 3DGS's."""
+        if self.truth is not None:
+            return self.truth.render(camera, pose)[1]
         depth = self.base.render(camera, pose)[1]
         if self.stereo is None:
             return depth
@@ -142,7 +152,10 @@ class SourceRenderer:
     def render(self, camera: Camera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         rgb, depth = self.base.render(camera, pose)
         depth_fn = self._depth
-        depth = self.proxy.fuse(camera, pose, depth, lambda X: self.sources.seen_through(X, depth_fn))
+        if self.truth is not None:
+            depth = depth_fn(camera, pose)
+        else:
+            depth = self.proxy.fuse(camera, pose, depth, lambda X: self.sources.seen_through(X, depth_fn))
         if self.stereo is not None:
             depth = _nearest(self.stereo.depth(camera, pose), depth)
         if not self.colour:
