@@ -1,24 +1,17 @@
 """bench/targets.py's figures: targets against the true distance along the ground cameras' rays."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
+from test_bench_splat_views import load_bench
 from test_viewpoints import make_scene, pose_ypr, raycast
 
 from services import views as vp
 from services.conf import merge_conf
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("targets", ROOT / "bench" / "targets.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("targets")
 
 
 class Truth:
