@@ -1,0 +1,157 @@
+"""Why each ground image of a method run is in or out: one row per ground image of a job folder.
+
+    python bench/ground_report.py --scene runs/bench/scene-small-walk-seed0 \\
+        --job runs/bench/m-walk/splat-both --json runs/ground-report.json
+
+Per ground image: the reducer's PnP (its 2D-3D correspondences and inliers, accepted or not, its error
+against the truth after aligning the aerial model by its cameras), the combined SfM's registration (by
+the mapper or at the PnP pose, its absolute error against the truth) or the reason it gives, and the
+image's verified ground-ground pairs (the largest, and how many lead to a registered image). Each image
+gets one cause:
+
+- `within`: registered within `--metres` (absolute);
+- `off`: registered farther off;
+- `dropped`: registered, then dropped (ill-determined, or far from its POS);
+- `ground-only`: verified ground-ground pairs of at least `--min-pair` matches, but too few of its
+  matches reach the model's points (no aerial tie strong enough, no registered neighbour sharing them);
+- `unmatched`: no verified pair of `--min-pair` matches.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+for p in (ROOT, ROOT / "bench"):
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
+
+from method import truth_alignment  # noqa: E402
+
+from services.colmap_model import read_model  # noqa: E402
+from services.evaluation import evaluate_sfm  # noqa: E402
+from services.pipeline import Job  # noqa: E402
+
+CAUSES = ("within", "off", "dropped", "ground-only", "unmatched")
+
+
+def ground_ground(report: dict, registered: set[str], min_pair: int) -> dict[str, dict]:
+    """Per ground image: its largest verified ground-ground pair and its registered partners (pairs of
+    at least min_pair inliers), from the combined report's `ground_pairs`."""
+    out: dict[str, dict] = {}
+    for key, rec in report.get("ground_pairs", {}).items():
+        a, b = key.split(" ")
+        n = int(rec.get("inliers", 0)) if rec.get("accepted") else 0
+        for g, h in ((a, b), (b, a)):
+            d = out.setdefault(g, {"largest_pair": 0, "registered_partners": 0})
+            d["largest_pair"] = max(d["largest_pair"], n)
+            d["registered_partners"] += int(n >= min_pair and h in registered)
+    return out
+
+
+def cause(row: dict, metres: float, min_pair: int) -> str:
+    """One of CAUSES for a row of ground_rows."""
+    if row["registered"]:
+        return "within" if row["error_m"] is not None and row["error_m"] <= metres else "off"
+    if "dropped" in (row["reason"] or ""):
+        return "dropped"
+    return "ground-only" if row["largest_pair"] >= min_pair else "unmatched"
+
+
+def ground_rows(
+    scene: Path, job_root: Path, out: Path, metres: float = 0.5, min_pair: int = 15
+) -> list[dict]:
+    """The rows (module docstring) of the job folder `job_root` against the synthetic scene `scene`."""
+    job = Job.load(job_root)
+    s, R, t = truth_alignment(scene, job.sfm.sparse)
+    _, gt = read_model(scene / "gt" / "sparse")
+    pnp = json.loads(job.transfer.ground_poses.read_text())["images"]
+    report = json.loads(job.combined.report.read_text())
+    ev = evaluate_sfm(scene, job.combined.sparse, out)
+    abs_err = {r["name"]: r.get("absolute_error") for r in ev["per_image"]}
+    registered = {g for g, r in report["ground"].items() if r.get("registered")}
+    gg = ground_ground(report, registered, min_pair)
+    rows = []
+    for g in sorted(n for n in gt if n.startswith("ground/")):
+        p, r = pnp.get(g, {}), report["ground"].get(g, {})
+        centre = p.get("center")
+        row = {
+            "name": g,
+            "pnp_accepted": bool(p.get("accepted")),
+            "pnp_correspondences": int(p.get("num_correspondences", 0)),
+            "pnp_inliers": int(p.get("num_inliers", 0)),
+            "pnp_error_m": None
+            if centre is None
+            else float(np.linalg.norm(s * R @ np.asarray(centre, float) + t - gt[g].center)),
+            "registered": bool(r.get("registered")),
+            "registered_by": r.get("registered_by"),
+            "error_m": abs_err.get(g),
+            "reason": r.get("reason"),
+            **gg.get(g, {"largest_pair": 0, "registered_partners": 0}),
+        }
+        row["cause"] = cause(row, metres, min_pair)
+        rows.append(row)
+    return rows
+
+
+def summary(rows: list[dict]) -> dict:
+    """{cause: count} and {cause: [names]} over the rows."""
+    counts = Counter(r["cause"] for r in rows)
+    return {
+        "counts": {c: counts.get(c, 0) for c in CAUSES},
+        "images": {c: [r["name"] for r in rows if r["cause"] == c] for c in CAUSES if counts.get(c)},
+    }
+
+
+def _f(v, fmt: str = "{:.2f}") -> str:
+    return "-" if v is None else fmt.format(v)
+
+
+def print_rows(rows: list[dict]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="ground images: in or out, and why")
+    for c in ("image", "cause", "PnP corr/inl", "PnP ok", "PnP err m", "by", "err m", "gg pair", "reg nb"):
+        table.add_column(c)
+    for r in rows:
+        table.add_row(
+            Path(r["name"]).stem,
+            r["cause"],
+            f"{r['pnp_correspondences']}/{r['pnp_inliers']}",
+            "yes" if r["pnp_accepted"] else "no",
+            _f(r["pnp_error_m"]),
+            r["registered_by"] or "-",
+            _f(r["error_m"]),
+            str(r["largest_pair"]),
+            str(r["registered_partners"]),
+        )
+    console = Console(width=max(Console().width, 120))
+    console.print(table)
+    console.print(summary(rows)["counts"])
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", type=Path, required=True, help="the synthetic scene folder (gt/)")
+    ap.add_argument("--job", type=Path, required=True, help="a job folder of bench/method.py")
+    ap.add_argument("--metres", type=float, default=0.5)
+    ap.add_argument("--min-pair", type=int, default=15, help="verified matches of a ground-ground pair")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    rows = ground_rows(args.scene, args.job, args.job / "eval-ground-report", args.metres, args.min_pair)
+    print_rows(rows)
+    if args.json:
+        doc = {"command": "python bench/ground_report.py " + " ".join(argv or sys.argv[1:])}
+        args.json.write_text(json.dumps({**doc, **summary(rows), "per_image": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
