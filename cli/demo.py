@@ -40,6 +40,50 @@ DEMO_OPTIONS = {
 # aerial images (the demo on isprs: 20.6 min with 600 s, the rendering of its views 75 s instead of 5)
 DEMO_SPLAT_BUDGET_S = 540.0
 
+# the demo's deadline (`--deadline`, seconds from its start): the 3DGS trains for what is left of it once the
+# stages before it have run, less the stages after it, estimated as DEMO_AFTER_SPLAT_RATIO times the time
+# those before it took (the machine's pace: synthesis and aerial SfM took 3.3-4.4 min in the demos of
+# docs/measurements.md, the stages after the 3DGS (views, matching, reduce, combined SfM, the baselines'
+# reconstructions, evaluation) 4.9-7.8 min, 1.4-1.8 times as long), within [DEMO_SPLAT_MIN_S,
+# --splat-time-budget]: on a fast machine the budget alone decides, on a slow one the 3DGS gets fewer steps
+DEMO_DEADLINE_S = 19 * 60.0
+DEMO_AFTER_SPLAT_RATIO = 1.8
+DEMO_SPLAT_MIN_S = 180.0  # fewer steps than about 180 s allow on 2 cores give views without detail
+
+
+def splat_budget_for_deadline(
+    elapsed_s: float,
+    deadline_s: float,
+    cap_s: float | None,
+    after_ratio: float = DEMO_AFTER_SPLAT_RATIO,
+    floor_s: float = DEMO_SPLAT_MIN_S,
+) -> float:
+    """Seconds of 3DGS training that end the demo by `deadline_s` when the stages before the 3DGS took
+    `elapsed_s` and those after it take `after_ratio` times as long; at least `floor_s`, at most `cap_s`
+    (None: no cap)."""
+    left = deadline_s - elapsed_s * (1.0 + after_ratio)
+    budget = max(floor_s, left)
+    return budget if cap_s is None else min(cap_s, budget)
+
+
+def fit_splat_budget(job, elapsed_s: float, deadline_s: float, console) -> float | None:
+    """Set the job's 3DGS time budget for the demo's deadline (job.json keeps it). A 3DGS the job has
+    already trained keeps the budget it was trained with, so that a rerun does not train it again."""
+    if job.splat.metrics.is_file():
+        trained = json.loads(job.splat.metrics.read_text()).get("time_budget_s")
+        budget = float(trained) if trained else None
+        reason = "the budget its 3DGS was trained with"
+    else:
+        budget = splat_budget_for_deadline(elapsed_s, deadline_s, job.options.splat_time_budget_s)
+        reason = f"{elapsed_s / 60:.1f} of the deadline's {deadline_s / 60:.1f} min spent"
+    job.options = job.options.model_copy(update={"splat_time_budget_s": budget})
+    job.save()
+    shown = "none" if budget is None else f"{budget:.0f} s"
+    console.print(f"3DGS time budget: {shown} ({reason})")
+    logger.info("3DGS time budget %s (%s)", shown, reason)
+    return budget
+
+
 DEMO_SETTINGS = {
     "torch_threads": 1,
     # CPU training: cap the model size. 3000 steps at 400 px on small-walk (bench/splat_views.py, 20 views
@@ -234,10 +278,20 @@ def synthesize(out: Path, preset: str, seed: int, textures: Path | None, supersa
 
 
 def run_with_baselines(
-    job, scene: Path, out: Path, baselines: bool, beside: bool, run_job: Callable, console, timings: dict
+    job,
+    scene: Path,
+    out: Path,
+    baselines: bool,
+    beside: bool,
+    run_job: Callable,
+    console,
+    timings: dict,
+    deadline: tuple[float, float] | None = None,
 ) -> dict[str, tuple]:
     """The pipeline, and the direct baselines beside it (a child process, which also extracts midview's
-    features for the job) or after it; {label: (match file, matching conf)} of the baselines."""
+    features for the job) or after it; {label: (match file, matching conf)} of the baselines.
+    `deadline`: (the demo's start, perf_counter; its deadline in seconds): the 3DGS's budget is fitted to
+    it once the stages before the 3DGS have run."""
     from services import pipeline
     from services.matching.views import feature_conf
 
@@ -252,7 +306,11 @@ def run_with_baselines(
         t0 = time.perf_counter()
         todo = list(job.options.stages)
         cut = todo.index("match_views") if child is not None and "match_views" in todo else len(todo)
-        results = run_job(job, stages=todo[:cut])
+        first = todo.index("train_splat") if deadline and "train_splat" in todo[:cut] else 0
+        results = run_job(job, stages=todo[:first]) if first else {}
+        if first:
+            fit_splat_budget(job, time.perf_counter() - deadline[0], deadline[1], console)
+        results.update(run_job(job, stages=todo[first:cut]))
         if cut < len(todo):
             if child.share_features(job.features_path):
                 console.print("midview's features: taken from the baselines' process")
@@ -303,9 +361,11 @@ def run_demo(
     baseline_sfm: bool,
     beside: bool,
     run_job: Callable,
+    deadline_s: float | None = None,
 ) -> Path:
     """The demo (see the module docstring) with the job options `options`; returns OUT/report.html.
-    `run_job(job, stages)` runs the pipeline's stages (with the command's progress display)."""
+    `run_job(job, stages)` runs the pipeline's stages (with the command's progress display).
+    `deadline_s`: seconds from the start by which the demo should end (the 3DGS's budget is fitted to it)."""
     from rich.console import Console
 
     from cli.demo_report import print_table, write_report_html
@@ -324,7 +384,8 @@ def run_demo(
         out / "job", images / "aerial", images / "ground", scene / "pos.csv", scene / "cameras.json",
         options=options, settings=settings,
     )  # fmt: skip
-    found = run_with_baselines(job, scene, out, baselines, beside, run_job, console, timings)
+    deadline = (t_start, deadline_s) if deadline_s else None
+    found = run_with_baselines(job, scene, out, baselines, beside, run_job, console, timings, deadline)
     files: dict[str, Path] = {k: v[0] for k, v in found.items()}
     sfm_evals: dict[str, dict] = {}
     if baseline_sfm and found:

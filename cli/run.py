@@ -238,6 +238,11 @@ def demo(
         demo_mod.DEMO_SPLAT_BUDGET_S,
         help="seconds of 3DGS training at most: fewer steps on a slow machine (0: none)",
     ),
+    deadline: float = typer.Option(
+        demo_mod.DEMO_DEADLINE_S / 60,
+        help="minutes from the start by which the demo should end: the 3DGS trains for what the stages"
+        " before it leave (at most --splat-time-budget; 0: no deadline)",
+    ),
     max_keypoints: int = typer.Option(demo_mod.DEMO_OPTIONS["max_keypoints"]),
     supersample: int = typer.Option(1, help="synthesis supersampling (the preset's is 2: slower, smoother)"),
     baselines: bool = typer.Option(True, help="also run the direct baselines"),
@@ -255,6 +260,8 @@ def demo(
         _fail(f"unknown preset {preset!r}: {', '.join(synth.confs)}")
     if splat_time_budget < 0:
         _fail(f"--splat-time-budget must be >= 0 seconds, got {splat_time_budget}")
+    if deadline < 0:
+        _fail(f"--deadline must be >= 0 minutes, got {deadline}")
     options = {
         **demo_mod.DEMO_OPTIONS,
         "seed": seed,
@@ -277,6 +284,7 @@ def demo(
             baseline_sfm,
             beside,
             run_job,
+            deadline * 60 or None,
         )
     except pipeline.StageError as e:
         _fail(str(e))
