@@ -166,9 +166,13 @@ def direct_baselines(
     return out
 
 
-def _baselines_process(scene: str, out_dir: str, aliked_features: dict, sift_conf: dict) -> None:
+def _baselines_process(
+    scene: str, out_dir: str, aliked_features: dict, sift_conf: dict, job_dir: str | None = None
+) -> None:
     """direct_baselines in a child process beside the pipeline: one torch thread, its output (logs,
-    progress bars, COLMAP's) in OUT_DIR/baselines.log, its result in OUT_DIR/baselines.json."""
+    progress bars, COLMAP's) in OUT_DIR/baselines.log, its result in OUT_DIR/baselines.json. With
+    `job_dir`, then the baselines' combined reconstructions (reconstruct_baselines) once the parent says
+    the job's aerial model is ready (BaselinesBeside.aerial_model_ready), while the pipeline still runs."""
     import os
 
     out = Path(out_dir)
@@ -195,8 +199,49 @@ def _baselines_process(scene: str, out_dir: str, aliked_features: dict, sift_con
     )
     (out / "features" / "shared.done").touch()
     found = direct_baselines(Path(scene), out, aliked_features, sift_conf)
-    result = {"found": {k: [str(p), c] for k, (p, c) in found.items()}, "seconds": time.perf_counter() - t0}
-    (out / "baselines.json").write_text(json.dumps(result))
+    result: dict = {
+        "found": {k: [str(p), c] for k, (p, c) in found.items()},
+        "seconds": time.perf_counter() - t0,
+    }
+    if job_dir is not None and _wait_for(out / AERIAL_READY):
+        from services.pipeline import Job
+
+        t1 = time.perf_counter()
+        sfm = reconstruct_baselines(Job.load(job_dir), found, Path(scene), out.parent, _LogConsole())
+        result.update(sfm=sfm, sfm_seconds=time.perf_counter() - t1)
+    (out / "baselines.json").write_text(json.dumps(result, default=_plain))
+
+
+def _plain(o):
+    """JSON for what evaluate_sfm's reports hold besides plain types: numpy values and arrays, paths."""
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    return str(o)
+
+
+AERIAL_READY = "aerial-model.ready"  # the parent's word to the child: the job's aerial model is done
+
+
+def _wait_for(flag: Path, poll_s: float = 1.0) -> bool:
+    """Wait until `flag` exists; False if the parent process went away first."""
+    import os
+
+    parent = os.getppid()
+    while not flag.exists():
+        if os.getppid() != parent:
+            return False
+        time.sleep(poll_s)
+    return True
+
+
+class _LogConsole:
+    """The few rich Console calls reconstruct_baselines makes, to the log (the child has no terminal)."""
+
+    def status(self, message: str):
+        import contextlib
+
+        logger.info("%s", message)
+        return contextlib.nullcontext()
 
 
 class BaselinesBeside:
@@ -206,21 +251,35 @@ class BaselinesBeside:
     COLMAP's signal handler can deadlock on SIGTERM). The child extracts midview's features (ALIKED, the
     job's conf) first, which `share_features` hands to the job."""
 
-    def __init__(self, scene: Path, out_dir: Path, aliked_features: dict, sift_conf: dict):
+    def __init__(
+        self, scene: Path, out_dir: Path, aliked_features: dict, sift_conf: dict, job_dir: Path | None = None
+    ):
         import multiprocessing
 
         self.out_dir = Path(out_dir)
         self.log = self.out_dir / "baselines.log"
         self.features = self.out_dir / "features" / f"{aliked_features['output']}.h5"
-        (self.out_dir / "baselines.json").unlink(missing_ok=True)
-        (self.out_dir / "features" / "shared.done").unlink(missing_ok=True)
+        self.sfm: dict[str, dict] | None = None  # the baselines' reconstructions, when the child made them
+        self.sfm_seconds = 0.0
+        for stale in ("baselines.json", "features/shared.done", AERIAL_READY):
+            (self.out_dir / stale).unlink(missing_ok=True)
+        job = None if job_dir is None else str(job_dir)
         self.proc = multiprocessing.get_context("spawn").Process(
-            target=_baselines_process, args=(str(scene), str(out_dir), aliked_features, sift_conf)
+            target=_baselines_process, args=(str(scene), str(out_dir), aliked_features, sift_conf, job)
         )
         self.proc.start()
 
+    def aerial_model_ready(self) -> None:
+        """Tell the child that the job's aerial model is done: it reconstructs the baselines after its
+        matching (if it was given the job)."""
+        flag = self.out_dir / AERIAL_READY
+        if not flag.exists():
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            flag.touch()
+
     def wait(self, timeout: float | None = None) -> tuple[dict[str, tuple], float]:
-        """{label: (match file, matching conf)} as direct_baselines returns, and the child's seconds."""
+        """{label: (match file, matching conf)} as direct_baselines returns, and the child's seconds; the
+        child's reconstructions, if it made them, in `sfm` ({label: evaluate_sfm}) and `sfm_seconds`."""
         self.proc.join(timeout)
         if self.proc.is_alive():
             raise TimeoutError(f"the direct baselines still run after {timeout} s (log: {self.log})")
@@ -229,6 +288,7 @@ class BaselinesBeside:
             code = self.proc.exitcode
             raise RuntimeError(f"the direct baselines failed (exit code {code}); see {self.log}")
         r = json.loads(result.read_text())
+        self.sfm, self.sfm_seconds = r.get("sfm"), float(r.get("sfm_seconds", 0.0))
         return {k: (Path(p), c) for k, (p, c) in r["found"].items()}, float(r["seconds"])
 
     def share_features(self, dst: Path) -> bool:
@@ -277,6 +337,26 @@ def synthesize(out: Path, preset: str, seed: int, textures: Path | None, supersa
     return scene
 
 
+def _run_pipeline(job, run_job: Callable, child, deadline: tuple[float, float] | None, console) -> dict:
+    """The job's stages in three runs: those before the 3DGS (the aerial SfM); then, the child told that
+    the aerial model is ready and the 3DGS's budget fitted to the deadline, those up to the matching;
+    then, with the child's features, the rest. {stage: marker}."""
+    todo = list(job.options.stages)
+    cut = todo.index("match_views") if child is not None and "match_views" in todo else len(todo)
+    first = todo.index("train_splat") if "train_splat" in todo[:cut] else 0
+    results: dict = {}
+    for i, stages in enumerate((todo[:first], todo[first:cut], todo[cut:])):
+        if i == 1 and first and deadline:
+            fit_splat_budget(job, time.perf_counter() - deadline[0], deadline[1], console)
+        if i == 2 and stages and child.share_features(job.features_path):
+            console.print("midview's features: taken from the baselines' process")
+        if stages:
+            results.update(run_job(job, stages=stages))
+            if child is not None:
+                child.aerial_model_ready()
+    return results
+
+
 def run_with_baselines(
     job,
     scene: Path,
@@ -287,9 +367,12 @@ def run_with_baselines(
     console,
     timings: dict,
     deadline: tuple[float, float] | None = None,
-) -> dict[str, tuple]:
+    baseline_sfm: bool = False,
+) -> tuple[dict[str, tuple], dict[str, dict] | None]:
     """The pipeline, and the direct baselines beside it (a child process, which also extracts midview's
-    features for the job) or after it; {label: (match file, matching conf)} of the baselines.
+    features for the job and, with `baseline_sfm`, reconstructs with the baselines' matches once the
+    aerial model is there) or after it. Returns {label: (match file, matching conf)} of the baselines
+    and the child's reconstructions ({label: evaluate_sfm}; None when it made none).
     `deadline`: (the demo's start, perf_counter; its deadline in seconds): the 3DGS's budget is fitted to
     it once the stages before the 3DGS have run."""
     from services import pipeline
@@ -299,22 +382,12 @@ def run_with_baselines(
     sift = {"features": _demo_sift_conf()}
     child = None
     if baselines and beside:
-        child = BaselinesBeside(scene, out / "baselines", aliked, sift)
+        child = BaselinesBeside(scene, out / "baselines", aliked, sift, job.root if baseline_sfm else None)
         console.print(f"direct baselines beside the pipeline (log: {child.log})")
     found: dict[str, tuple] = {}
     try:
         t0 = time.perf_counter()
-        todo = list(job.options.stages)
-        cut = todo.index("match_views") if child is not None and "match_views" in todo else len(todo)
-        first = todo.index("train_splat") if deadline and "train_splat" in todo[:cut] else 0
-        results = run_job(job, stages=todo[:first]) if first else {}
-        if first:
-            fit_splat_budget(job, time.perf_counter() - deadline[0], deadline[1], console)
-        results.update(run_job(job, stages=todo[first:cut]))
-        if cut < len(todo):
-            if child.share_features(job.features_path):
-                console.print("midview's features: taken from the baselines' process")
-            results.update(run_job(job, stages=todo[cut:]))
+        results = _run_pipeline(job, run_job, child, deadline, console)
         timings["pipeline"] = time.perf_counter() - t0
         for s, r in results.items():
             timings[s] = float(r.get("seconds", 0.0))
@@ -330,7 +403,9 @@ def run_with_baselines(
     finally:
         if child is not None:  # done, or the pipeline failed: stop the child either way
             child.stop()
-    return found
+    if child is not None and child.sfm is not None:
+        timings["baselines_sfm_beside"] = child.sfm_seconds
+    return found, None if child is None else child.sfm
 
 
 def reconstruct_baselines(job, found: dict[str, tuple], scene: Path, out: Path, console) -> dict[str, dict]:
@@ -385,10 +460,12 @@ def run_demo(
         options=options, settings=settings,
     )  # fmt: skip
     deadline = (t_start, deadline_s) if deadline_s else None
-    found = run_with_baselines(job, scene, out, baselines, beside, run_job, console, timings, deadline)
+    found, sfm_beside = run_with_baselines(
+        job, scene, out, baselines, beside, run_job, console, timings, deadline, baseline_sfm
+    )
     files: dict[str, Path] = {k: v[0] for k, v in found.items()}
-    sfm_evals: dict[str, dict] = {}
-    if baseline_sfm and found:
+    sfm_evals: dict[str, dict] = dict(sfm_beside or {})
+    if baseline_sfm and found and sfm_beside is None:
         t0 = time.perf_counter()
         sfm_evals = reconstruct_baselines(job, found, scene, out, console)
         timings["baselines_sfm"] = time.perf_counter() - t0

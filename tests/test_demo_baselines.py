@@ -62,3 +62,42 @@ def test_a_failing_child_says_where_its_log_is(tmp_path):
     with pytest.raises(RuntimeError, match="baselines.log"):
         child.wait(timeout=120)
     assert "Traceback" in child.log.read_text()
+
+
+def test_the_child_reconstructs_the_baselines_once_the_aerial_model_is_ready(tiny_scene, tmp_path):
+    """Given the job, the child waits for the parent's word that the aerial model is done, then makes
+    the baselines' combined reconstructions beside the pipeline: the same as the demo makes in-process."""
+    from cli.demo import reconstruct_baselines
+    from services import pipeline
+
+    images = tiny_scene / "images"
+    job = pipeline.Job.create(
+        tmp_path / "demo" / "job", images / "aerial", images / "ground", tiny_scene / "pos.csv",
+        tiny_scene / "cameras.json", settings={"sfm": {"features": {"max_num_features": 2048}}},
+    )  # fmt: skip
+    child = BaselinesBeside(tiny_scene, tmp_path / "demo" / "baselines", ALIKED, SIFT, job.root)
+    try:
+        pipeline.run(job, stages=["aerial_sfm"])
+        deadline = time.monotonic() + 300
+        while not (child.out_dir / "direct-alg.h5").exists() and time.monotonic() < deadline:
+            time.sleep(0.5)
+        time.sleep(3.0)  # its matching is done: it waits for the word, writing no result
+        assert child.proc.is_alive() and not (child.out_dir / "baselines.json").exists()
+        child.aerial_model_ready()
+        found, _ = child.wait(timeout=600)
+    finally:
+        child.stop()
+    assert child.sfm is not None and set(child.sfm) == set(found) and child.sfm_seconds > 0
+    here = reconstruct_baselines(job, found, tiny_scene, tmp_path / "here", _Quiet())
+    assert set(here) == set(child.sfm)
+    for label, ev in here.items():
+        mine = child.sfm[label]["per_set"]["ground"]
+        assert mine["num_registered"] == ev["per_set"]["ground"]["num_registered"]
+        assert isinstance(mine["num_registered"], int) and isinstance(child.sfm[label]["num_points3D"], int)
+
+
+class _Quiet:
+    def status(self, message):
+        import contextlib
+
+        return contextlib.nullcontext()
