@@ -42,10 +42,11 @@ DEMO_SPLAT_BUDGET_S = 540.0
 
 # the demo's deadline (`--deadline`, seconds from its start): the 3DGS trains for what is left of it once the
 # stages before it have run, less the stages after it, estimated as DEMO_AFTER_SPLAT_RATIO times the time
-# those before it took (the machine's pace: synthesis and aerial SfM took 3.3-4.4 min in the demos of
+# those before it took (the machine's pace: synthesis and aerial SfM took 3.4-7.0 min in the demos of
 # docs/measurements.md, the stages after the 3DGS (views, matching, reduce, combined SfM, the baselines'
-# reconstructions, evaluation) 4.9-7.8 min, 1.4-1.8 times as long), within [DEMO_SPLAT_MIN_S,
-# --splat-time-budget]: on a fast machine the budget alone decides, on a slow one the 3DGS gets fewer steps
+# reconstructions, evaluation) 1.2-1.8 times as long, 2.3 on a host that stole a third of the CPU), within
+# [DEMO_SPLAT_MIN_S, --splat-time-budget]: on a fast machine the budget alone decides, on a slow one the
+# 3DGS gets fewer steps
 DEMO_DEADLINE_S = 19 * 60.0
 DEMO_AFTER_SPLAT_RATIO = 1.8
 DEMO_SPLAT_MIN_S = 180.0  # fewer steps than about 180 s allow on 2 cores give views without detail
