@@ -69,9 +69,11 @@ def splat_budget_for_deadline(
 
 def fit_splat_budget(job, elapsed_s: float, deadline_s: float, console) -> float | None:
     """Set the job's 3DGS time budget for the demo's deadline (job.json keeps it). A 3DGS the job has
-    already trained keeps the budget it was trained with, so that a rerun does not train it again."""
-    if job.splat.metrics.is_file():
-        trained = json.loads(job.splat.metrics.read_text()).get("time_budget_s")
+    trained, or begun to train (its conf.json), keeps the budget it was trained with, so that a rerun
+    neither trains it again nor restarts a killed training."""
+    started = job.splat / "conf.json"
+    if started.is_file():
+        trained = json.loads(started.read_text()).get("time_budget_s")
         budget = float(trained) if trained else None
         reason = "the budget its 3DGS was trained with"
     else:

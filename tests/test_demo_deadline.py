@@ -50,9 +50,10 @@ def test_the_job_keeps_the_fitted_budget_and_a_trained_3dgs_keeps_its_own(tiny_s
     assert Job.load(tmp_path / "job").options.splat_time_budget_s == pytest.approx(400.8)
     assert job.splat_conf()["time_budget_s"] == pytest.approx(400.8)
     assert "3DGS time budget: 401 s" in console.lines[0]
-    # a rerun of the demo in the same folder: the 3DGS trained with 400.8 s is not trained again
+    # a rerun of the demo in the same folder: the 3DGS trained (or killed while training) with 400.8 s
+    # keeps its budget, so that it is neither trained again nor restarted
     job.splat.dir.mkdir(parents=True, exist_ok=True)
-    job.splat.metrics.write_text(json.dumps({"steps": 1800, "time_budget_s": 400.8}))
+    (job.splat / "conf.json").write_text(json.dumps({**job.splat_conf(), "time_budget_s": 400.8}))
     again = _job(tiny_scene, tmp_path / "job", 540.0)
     assert fit_splat_budget(again, 10.0, 1140.0, console) == pytest.approx(400.8)
     assert Job.load(tmp_path / "job").options.splat_time_budget_s == pytest.approx(400.8)
