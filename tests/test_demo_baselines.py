@@ -67,7 +67,7 @@ def test_a_failing_child_says_where_its_log_is(tmp_path):
 def test_the_child_reconstructs_the_baselines_once_the_aerial_model_is_ready(tiny_scene, tmp_path):
     """Given the job, the child waits for the parent's word that the aerial model is done, then makes
     the baselines' combined reconstructions beside the pipeline: the same as the demo makes in-process."""
-    from cli.demo import reconstruct_baselines
+    from cli.demo import _LogConsole, reconstruct_baselines
     from services import pipeline
 
     images = tiny_scene / "images"
@@ -88,16 +88,9 @@ def test_the_child_reconstructs_the_baselines_once_the_aerial_model_is_ready(tin
     finally:
         child.stop()
     assert child.sfm is not None and set(child.sfm) == set(found) and child.sfm_seconds > 0
-    here = reconstruct_baselines(job, found, tiny_scene, tmp_path / "here", _Quiet())
+    here = reconstruct_baselines(job, found, tiny_scene, tmp_path / "here", _LogConsole())
     assert set(here) == set(child.sfm)
     for label, ev in here.items():
         mine = child.sfm[label]["per_set"]["ground"]
         assert mine["num_registered"] == ev["per_set"]["ground"]["num_registered"]
         assert isinstance(mine["num_registered"], int) and isinstance(child.sfm[label]["num_points3D"], int)
-
-
-class _Quiet:
-    def status(self, message):
-        import contextlib
-
-        return contextlib.nullcontext()
