@@ -357,3 +357,26 @@ def test_transient_cars_are_there_in_one_capture_only():
     assert not np.isin(aerial.bgroup, only_ground).any() and np.isin(aerial.bgroup, only_aerial).any()
     assert not np.isin(ground.bgroup, only_aerial).any() and np.isin(ground.bgroup, only_ground).any()
     assert len(aerial.boxes) < len(scene.boxes) and len(ground.boxes) < len(scene.boxes)
+
+
+def test_isprs_walk_walks_the_isprs_block_and_renders_the_same_bytes_for_the_same_seed():
+    """isprs-walk: isprs's scene and flight with 50 ground images 3.5 m apart in sequence; a ground image
+    rendered from two builds of the survey with the same seed is the same array, another seed's is not."""
+    from services.colmap_model import Camera
+    from services.synth.pipeline import Renderer, build_survey, light_array
+
+    walk, isprs = confs["isprs-walk"], confs["isprs"]
+    assert walk["scene"] == isprs["scene"] and walk["aerial"] == isprs["aerial"]
+    assert walk["lighting"] == isprs["lighting"] and walk["pos"] == isprs["pos"]
+    cam = Camera("PINHOLE", 256, 192, [187.5, 187.5, 128.0, 96.0])  # the ground camera at a quarter size
+    light = light_array(walk["lighting"]["ground"])
+    renders = []
+    for seed in (0, 0, 1):
+        photos, scene, aerial, ground, _ = build_survey(walk, seed, None)
+        renders.append([Renderer(scene, photos, seed)(ground[k], cam, light, 1)[0] for k in (0, 24)])
+    assert len(ground) == 50 and len(aerial) == 60
+    steps = np.linalg.norm(np.diff(np.array([v.C[:2] for v in ground]), axis=0), axis=1)
+    assert np.median(steps) == pytest.approx(3.5, abs=0.5)
+    assert (steps > 6.0).sum() <= 4  # round the block's corners only
+    assert all(np.array_equal(a, b) for a, b in zip(renders[0], renders[1], strict=True))
+    assert not any(np.array_equal(a, b) for a, b in zip(renders[0], renders[2], strict=True))

@@ -91,6 +91,18 @@ _BASE = {
 }
 
 
+# the `isprs` survey's scene and flight (shared by its presets)
+ISPRS_SCENE = {
+    "height": [8.0, 20.0],
+    "relief": [0.12, 0.3],
+    "balconies": 0.35,
+    "photo_facades": False,
+    "wall_photos": 0.5,
+    "transient": 0.33,
+}
+ISPRS_AERIAL = {"altitude": 50.0, "f": 1400.0, "grid": [3, 4]}
+
+
 def _preset(name: str, **over: dict) -> dict:
     c = copy.deepcopy(_BASE)
     c["name"] = name
@@ -153,23 +165,29 @@ confs: dict[str, dict] = {
     # one capture only
     "isprs": _preset(
         "isprs",
-        scene={
-            "height": [8.0, 20.0],
-            "relief": [0.12, 0.3],
-            "balconies": 0.35,
-            "photo_facades": False,
-            "wall_photos": 0.5,
-            "transient": 0.33,
-        },
-        aerial={"altitude": 50.0, "f": 1400.0, "grid": [3, 4]},
+        scene=ISPRS_SCENE,
+        aerial=ISPRS_AERIAL,
         ground={"count": 20},
+    ),
+    # `isprs` walked: its flight, facades, light and clutter, with 50 ground images 3.5 m apart in sequence
+    # around the block (a walker photographing the facades, as mapping teams capture the ground densely)
+    "isprs-walk": _preset(
+        "isprs-walk",
+        scene=ISPRS_SCENE,
+        aerial=ISPRS_AERIAL,
+        ground={
+            "count": 50,
+            "layout": "walk",
+            "spacing_m": 3.5,
+            "views": {"in": 0.5, "diag": 0.4, "along": 0.1},
+        },
     ),
     # `isprs` with flat facades: no relief, no balconies, procedural walls, no transient cars; the same
     # flight, ground walk and light (a measurement of what the facades' properties do)
     "isprs-flat": _preset(
         "isprs-flat",
         scene={"height": [8.0, 20.0], "photo_facades": False},
-        aerial={"altitude": 50.0, "f": 1400.0, "grid": [3, 4]},
+        aerial=ISPRS_AERIAL,
         ground={"count": 20},
     ),
     # 3 x 3 surveyed blocks: ~350 aerial + 150 ground images (long; for a many-core machine)
