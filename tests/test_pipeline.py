@@ -98,6 +98,13 @@ def test_matches_were_produced(tiny_job):
     rep = json.loads((job.dir("combined") / "report.json").read_text())
     assert rep["num_registered"]["aerial"] == rep["num_images"]["aerial"] == 20
     assert rep["num_images"]["ground"] == 4
+    from services.sfm.combined.report import CAUSES
+
+    assert set(poses) == {f"ground/G000{i}.jpg" for i in range(1, 5)}  # with or without correspondences
+    assert all("views" in p and "view_aerial_fraction" in p for p in poses.values())
+    out = {g: d for g, d in rep["ground"].items() if not d["registered"]}
+    assert all(d["cause"] in CAUSES for d in out.values()), out  # every image left out says why
+    assert sum(rep["causes"].values()) == len(out)
 
 
 def test_every_localized_ground_image_is_in_the_combined_model(tiny_job):

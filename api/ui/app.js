@@ -457,13 +457,13 @@ async function mapPage(jobId) {
       h("span", {}, h("i", { class: "dot", style: "background:#c62828" }), "ground, not registered (at its POS)"),
       h("span", {}, h("i", { class: "dot", style: "border:1px solid #98a2b3" }), "POS; orange: POS to registered position")), map),
     h("section", {}, h("h2", {}, `Ground images (${ground.filter((q) => q.p.registered).length} of ${ground.length} registered)`),
-      h("table", { id: "ground-images" }, h("thead", {}, h("tr", {}, h("th", {}, "image"), h("th", {}, "registered"), h("th", { class: "num" }, "to POS"), h("th", { class: "num hide-phone" }, "σ"), h("th", {}, "reason"))),
+      h("table", { id: "ground-images" }, h("thead", {}, h("tr", {}, h("th", {}, "image"), h("th", {}, "registered"), h("th", { class: "num" }, "to POS"), h("th", { class: "num hide-phone" }, "σ"), h("th", {}, "cause"))),
         h("tbody", {}, ground.map((q) => h("tr", { class: "ground-row" },
           h("td", {}, h("a", { href: `#/jobs/${jobId}/ground/${encodeURIComponent(q.p.name.split("/")[1])}` }, q.p.name)),
           h("td", { class: q.p.registered ? "ok" : "bad" }, q.p.registered ? "yes" : "no"),
           h("td", { class: "num" }, q.p.to_pos_m !== null ? `${q.p.to_pos_m.toFixed(2)} m` : ""),
           h("td", { class: "num hide-phone" }, q.p.position_std_m !== null ? `${q.p.position_std_m.toFixed(2)} m` : ""),
-          h("td", {}, q.p.reason || "")))))));
+          h("td", { title: q.p.reason || "" }, q.p.cause ? h("span", { class: "cause" }, q.p.cause) : q.p.reason || "")))))));
 }
 function loadImage(url) { return new Promise((res, rej) => { const im = new Image(); im.onload = () => res(im); im.onerror = rej; im.src = url; }); }
 // a match's colour: by the ground truth where the report has it (synthetic surveys), else by verification
@@ -529,6 +529,7 @@ async function groundPage(jobId, file) {
     h("section", { class: "grid2" }, photo, h("div", {}, h("h2", {}, "Pose"),
       p ? h("table", { id: "pose" }, h("tbody", {},
         h("tr", {}, h("th", {}, "registered"), h("td", { class: p.registered ? "ok" : "bad", id: "pose-registered" }, p.registered ? `yes (${p.registered_by || ""})` : "no")),
+        p.cause ? h("tr", {}, h("th", {}, "cause"), h("td", { id: "pose-cause" }, p.cause)) : "",
         p.reason ? h("tr", {}, h("th", {}, "reason"), h("td", { id: "pose-reason" }, p.reason)) : "",
         p.to_pos_m !== null ? h("tr", {}, h("th", {}, "distance to its POS"), h("td", {}, `${p.to_pos_m.toFixed(2)} m`)) : "",
         p.heading !== null ? h("tr", {}, h("th", {}, "heading / pitch / roll"), h("td", {}, `${p.heading.toFixed(1)}° / ${p.pitch.toFixed(1)}° / ${p.roll.toFixed(1)}°`)) : ""))

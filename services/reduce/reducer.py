@@ -113,9 +113,31 @@ def pose_document(poses: dict[str, dict], georef: str | Path | None) -> dict:
     return doc
 
 
+def view_cover(doc: dict) -> dict[str, dict]:
+    """Per ground image of the views (views/views.json `doc`): how many views it is a candidate of and the
+    largest share of such a view that its renderer coloured from the aerial images (the render's
+    `source_fraction`; 1.0 where the renderer does not say): what the aerial images can show of it."""
+    out: dict[str, dict] = {}
+    for v in doc.get("views", []):
+        frac = float(v.get("render", {}).get("source_fraction", 1.0))
+        for g in v.get("ground", []):
+            d = out.setdefault(g, {"views": 0, "view_aerial_fraction": 0.0})
+            d["views"] += 1
+            d["view_aerial_fraction"] = max(d["view_aerial_fraction"], round(frac, 4))
+    return out
+
+
 def reduce_report(stats: dict, pairs: dict, poses: dict[str, dict], conf: dict, seconds: float) -> dict:
     """report.json: the counts, each ground pose's verdict, each pair's putative and verified matches."""
-    keys = ("accepted", "reason", "num_correspondences", "num_inliers", "to_pos")
+    keys = (
+        "accepted",
+        "reason",
+        "num_correspondences",
+        "num_inliers",
+        "to_pos",
+        "views",
+        "view_aerial_fraction",
+    )
     return {
         **{k: v for k, v in stats.items() if k != "views"},
         "num_views": len(stats["views"]),
@@ -148,7 +170,7 @@ def main(
     out_dir.mkdir(parents=True, exist_ok=True)
     with stage("reduce", logger):
         t0 = time.perf_counter()
-        views, _ = load_views(views_json, sorted(Path(p) for p in match_files))
+        views, doc = load_views(views_json, sorted(Path(p) for p in match_files))
         cams = read_cameras_json(cameras) if isinstance(cameras, str | Path) else dict(cameras)
         a_cams, a_poses = read_model(sparse)
         priors, prior_std = ground_priors(pos, georef)
@@ -156,6 +178,9 @@ def main(
         pairs, keypoints, poses, stats = reduce_views(
             views, a_cams, a_poses, cams["ground"], priors, prior_std, conf, a_feats
         )
+        for g in priors:  # every ground image, also those no view gave a correspondence
+            poses.setdefault(g, {"accepted": False, "num_correspondences": 0, "reason": "no correspondences"})
+            poses[g].update(view_cover(doc).get(g, {"views": 0, "view_aerial_fraction": 0.0}))
         sizes = {n: (cams[s].width, cams[s].height) for n in keypoints if (s := image_set(n)) in cams}
         match_path = write_match_file(out_dir / "matches.h5", pairs, keypoints, sizes, stats["views"])
         (out_dir / "ground_poses.json").write_text(json.dumps(pose_document(poses, georef), indent=1))

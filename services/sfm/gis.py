@@ -3,7 +3,8 @@
 - cameras.gpkg (layer `cameras`, Point Z in the output CRS) and cameras.geojson (WGS84, RFC 7946): every
   camera of the model, and the ground images it left out at their POS position, with the attributes a GIS
   user filters by: name, set, registered, registered_by, position_std_m, to_pos_m (distance to its
-  POS), heading/pitch/roll (degrees, local ENU), reason (why an image did not register).
+  POS), heading/pitch/roll (degrees, local ENU), reason (why an image did not register) and
+  its named cause (services.sfm.combined.report.CAUSES).
 - cameras_opk.txt: the registered cameras' exterior orientation, `name x y z omega phi kappa` in the
   output CRS (degrees; camera-to-map rotation Rx(omega) Ry(phi) Rz(kappa) of the photogrammetric
   camera axes: x right, y up, z back, as PATB, Pix4D and Metashape import it), the map axes those of
@@ -41,6 +42,7 @@ FIELDS = (
     ("pitch", float),
     ("roll", float),
     ("reason", str),
+    ("cause", str),
 )
 
 
@@ -83,6 +85,7 @@ def camera_rows(
                 "h": h,
                 "R": R,
                 "reason": None,
+                "cause": None,
             }
         )
         seen.add(img.name)
@@ -103,6 +106,7 @@ def camera_rows(
                 "h": r.h,
                 "R": None,
                 "reason": g.get("reason"),
+                "cause": g.get("cause"),
             }
         )
     for row in rows:

@@ -172,7 +172,7 @@ def main(
     fixed, min_pair = conf["mapping"]["fix_aerial"], int(conf["mapping"]["min_num_matches"])
     report = build_report(
         rec, cdb.ids, cdb.priors, pnp, seed, geo_summary, timings, t_all, added, dropped, fixed,
-        cdb.pair_sizes, min_pair, refined,
+        cdb.pair_sizes, min_pair, refined, cdb.ground_pairs,
     )  # fmt: skip
     report["ground_pairs"] = cdb.ground_pairs
     if conf["gis"]:

@@ -18,6 +18,33 @@ from services.sfm.combined.model import registered_ground
 logger = logging.getLogger("midview.combined_sfm")
 
 
+# why a ground image stayed out, one named cause each (report.json "cause", the GIS layers, the dashboard)
+CAUSES = {
+    "no-aerial-view": "its views show almost nothing that the aerial images see",
+    "views-without-ties": "its views gave no aerial tie",
+    "ties-without-pose": "aerial ties or pairs with registered images, too few or too weak for a pose",
+    "chained-to-unregistered": "verified pairs only with ground images that are not registered",
+    "ambiguous": "a pose was found, but it disagrees with its POS or is ill-determined, so it was dropped",
+}
+MIN_VIEW_AERIAL_FRACTION = 0.1  # a view coloured from the aerial images over less than this shows them little
+MIN_TIES = 4  # fewer aerial ties than this (the fewest PnP can place a camera with) are no tie
+
+
+def cause_of(g: str, entry: dict, pnp: dict, partners: list[str], registered: set[str]) -> str:
+    """The named cause (CAUSES) of a ground image that is not registered: `entry` its report entry,
+    `pnp` its record of the reducer's ground_poses.json ({} when none), `partners` the ground images of
+    its verified ground-ground pairs, `registered` the registered images."""
+    if entry.get("dropped") or pnp.get("accepted"):
+        return "ambiguous"
+    if int(pnp.get("num_correspondences") or 0) >= MIN_TIES or any(p in registered for p in partners):
+        return "ties-without-pose"
+    if partners:
+        return "chained-to-unregistered"
+    if pnp.get("views", 1) == 0 or float(pnp.get("view_aerial_fraction", 1.0)) < MIN_VIEW_AERIAL_FRACTION:
+        return "no-aerial-view"
+    return "views-without-ties"
+
+
 def _ground_entry(
     g: str,
     reg: dict[str, pycolmap.Image],
@@ -45,6 +72,7 @@ def _ground_entry(
         if pnp.get(g, {}).get("accepted"):
             d["to_pnp_m"] = float(np.linalg.norm(c - np.asarray(pnp[g]["center"], float)))
     elif g in dropped:
+        d["dropped"] = True
         d["reason"] = f"registered by the mapper but dropped: {dropped[g]}"
     elif pnp.get(g, {}).get("accepted"):
         d["reason"] = "registered by PnP but dropped by the mapper"
@@ -76,8 +104,10 @@ def build_report(
     pair_sizes: dict[int, int] | None = None,
     min_pair_matches: int = 15,
     refined: dict[str, float] | None = None,
+    ground_pairs: dict[str, dict] | None = None,
 ) -> dict:
-    """report.json of the combined model (see the module docstring)."""
+    """report.json of the combined model (see the module docstring); each ground image left out with its
+    named cause (cause_of; `ground_pairs`: the verified ground-ground pairs' records by "g0 g1")."""
     reg = {im.name: im for im in rec.images.values() if im.has_pose}
     # held at the PnP pose: added after the mapper, or seeded (unless the mapper's BA refined them)
     by_pnp = set(added or []) | (registered_ground(seed) if conf_fixed else set())
@@ -99,6 +129,16 @@ def build_report(
         )
         for g in sets["ground"]
     }
+    partners: dict[str, list[str]] = {}
+    for key, r in (ground_pairs or {}).items():
+        if r.get("accepted"):
+            a, b = key.split(" ", 1)
+            partners.setdefault(a, []).append(b)
+            partners.setdefault(b, []).append(a)
+    for g, d in ground.items():
+        if not d["registered"]:
+            d["cause"] = cause_of(g, d, pnp.get(g, {}), partners.get(g, []), set(reg))
+    causes = [d["cause"] for d in ground.values() if "cause" in d]
     return {
         "NRI": {s: f"{sum(n in reg for n in names)}/{len(names)}" for s, names in sets.items()},
         "num_registered": {s: sum(n in reg for n in names) for s, names in sets.items()},
@@ -111,6 +151,7 @@ def build_report(
         "refined_ground_images": len(refined or {}),
         "georef": georef,
         "ground": ground,
+        "causes": {c: causes.count(c) for c in CAUSES if c in causes},
         "timings_s": {
             **{k: round(v, 2) for k, v in timings.items()},
             "total": round(time.perf_counter() - t_all, 2),
