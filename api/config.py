@@ -22,6 +22,11 @@ class ApiSettings(Settings):
     migrate_on_startup: bool = Field(False, description="Apply database migrations when the API starts")
 
     max_upload_bytes: int = Field(512 * MB, ge=1, description="Largest image accepted, in bytes")
+    max_image_pixels: dict[Literal["aerial", "ground"], int] = Field(
+        {"aerial": 200_000_000, "ground": 200_000_000},
+        description="Largest image accepted per set, in pixels (width x height, read from the file's header "
+        "before anything is decoded: a few KB can claim gigapixels); the default fits 100 MP survey cameras",
+    )
     max_files_per_request: int = Field(1000, ge=1, description="Most files in one upload request")
     max_pos_bytes: int = Field(64 * MB, ge=1, description="Largest POS file accepted, in bytes")
     max_json_bytes: int = Field(1 * MB, ge=1024, description="Largest JSON request body, in bytes")

@@ -7,6 +7,7 @@ import hashlib
 import logging
 import re
 import unicodedata
+import warnings
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import BinaryIO
@@ -118,9 +119,37 @@ def jpeg_check(data: bytes, filename: str) -> tuple[int, int] | None:
     return int(img.shape[1]), int(img.shape[0])
 
 
-def decode_check(path: Path, filename: str) -> tuple[int, int]:
+class ImageTooLarge(ImageError):
+    """An image whose header claims more pixels than the limit (nothing of it was decoded)."""
+
+
+def header_pixels(path: Path) -> tuple[int, str] | None:
+    """(pixels, "W x H") that an image file's header claims, read without decoding its pixels (Pillow
+    reads the header only); None when Pillow does not know the format (left to the full decode)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                w, h = int(im.size[0]), int(im.size[1])
+                return w * h, f"{w} x {h}"
+    except Image.DecompressionBombError as e:  # over twice Pillow's own limit: its message has the count
+        found = re.search(r"\((\d+) pixels\)", str(e))
+        n = int(found.group(1)) if found else 2**62
+        return n, f"{n}"
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        return None
+
+
+def decode_check(path: Path, filename: str, max_pixels: int | None = None) -> tuple[int, int]:
     """(width, height) of an image file, decoded in full; ImageError naming filename when it is truncated
-    (JPEG without its end-of-image marker) or cannot be decoded."""
+    (JPEG without its end-of-image marker) or cannot be decoded, ImageTooLarge when its header claims
+    more than max_pixels pixels (checked before anything is decoded: a decompression bomb)."""
+    if max_pixels is not None:
+        claimed = header_pixels(path)
+        if claimed is not None and claimed[0] > max_pixels:
+            raise ImageTooLarge(f"{filename}: {claimed[1]} pixels exceed the limit of {max_pixels} pixels")
     data = np.fromfile(path, np.uint8)
     if data.size == 0:
         raise ImageError(f"{filename}: empty file")

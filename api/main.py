@@ -133,6 +133,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.storage,
         settings.upload_tmp_dir,
         settings.verify_workers,
+        max_pixels=settings.max_image_pixels,
     )
     app.add_middleware(
         BodyLimitMiddleware, limit_for=body_limits(settings), read_timeout_s=settings.body_read_timeout_s

@@ -38,8 +38,11 @@ class UploadRejected(Exception):
     """The assembled object failed a check (the message says which)."""
 
 
-def check_object(storage: Storage, upload: Upload, tmp: Path) -> tuple[str, int, int, int, dict]:
-    """(sha256, size, width, height, exif_meta) of the assembled object; UploadRejected when it fails."""
+def check_object(
+    storage: Storage, upload: Upload, tmp: Path, max_pixels: dict[str, int] | None = None
+) -> tuple[str, int, int, int, dict]:
+    """(sha256, size, width, height, exif_meta) of the assembled object; UploadRejected when it fails
+    (`max_pixels`: the largest image per set, checked on the header before anything is decoded)."""
     filename = upload.name.split("/", 1)[1]
     local = tmp / "image"
     try:
@@ -52,20 +55,24 @@ def check_object(storage: Storage, upload: Upload, tmp: Path) -> tuple[str, int,
     if upload.sha256 is not None and sha256 != upload.sha256:
         raise UploadRejected(f"{filename}: sha256 {sha256} does not match the announced {upload.sha256}")
     try:
-        width, height = decode_check(local, filename)
+        width, height = decode_check(local, filename, (max_pixels or {}).get(upload.name.split("/", 1)[0]))
     except ImageError as e:
         raise UploadRejected(str(e)) from None
     return sha256, size, width, height, exif_meta(local)
 
 
 def finish_upload(
-    session: Session, storage: Storage, upload: Upload, tmp_dir: str | None = None
+    session: Session,
+    storage: Storage,
+    upload: Upload,
+    tmp_dir: str | None = None,
+    max_pixels: dict[str, int] | None = None,
 ) -> tuple[Image, bool]:
     """Check the assembled object and register it as an image, deleting the upload row, in one
     transaction (committed): (image row, created). UploadRejected (nothing committed) when a check
     fails; the caller deletes the object and records or answers the reason."""
     with tempfile.TemporaryDirectory(prefix="midview-complete-", dir=tmp_dir) as tmp:
-        sha256, size, width, height, meta = check_object(storage, upload, Path(tmp))
+        sha256, size, width, height, meta = check_object(storage, upload, Path(tmp), max_pixels)
     name, uid = upload.name, upload.id
     try:
         row, created = crud.add_image(
@@ -101,9 +108,10 @@ class Verifier:
         tmp_dir: str | None = None,
         workers: int = 1,
         stale_s: float = 300.0,
+        max_pixels: dict[str, int] | None = None,
     ) -> None:
         self.maker, self.read_maker, self.storage = maker, read_maker, storage
-        self.tmp_dir, self.stale_s = tmp_dir, stale_s
+        self.tmp_dir, self.stale_s, self.max_pixels = tmp_dir, stale_s, max_pixels
         self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="verify")
 
     def submit(self, upload_id: str):
@@ -118,7 +126,7 @@ class Verifier:
             if upload is None or upload.state != "verifying":
                 return "gone"
             try:
-                finish_upload(session, self.storage, upload, self.tmp_dir)
+                finish_upload(session, self.storage, upload, self.tmp_dir, self.max_pixels)
                 return "done"
             except UploadRejected as e:
                 session.rollback()

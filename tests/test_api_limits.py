@@ -225,3 +225,104 @@ def test_a_project_origin_off_the_earth_is_422(limited):
         assert r.status_code == 422 and "latitude in [-90, 90]" in r.text, origin
     ok = c.post("/projects", json={"name": "origin-ok", "origin": [55.7, 13.19, 70.0]}, headers=h)
     assert ok.status_code == 201 and ok.json()["origin_lat"] == 55.7
+
+
+def _bomb_jpeg(jpeg: bytes, width: int, height: int) -> bytes:
+    """A small valid JPEG whose frame header (SOF0) claims width x height pixels."""
+    i = jpeg.index(b"\xff\xc0")
+    return jpeg[: i + 5] + height.to_bytes(2, "big") + width.to_bytes(2, "big") + jpeg[i + 9 :]
+
+
+def _bomb_png(side: int) -> bytes:
+    """A valid PNG of side x side black pixels (grey, 8 bit): under 1 MB that decodes to side^2 bytes."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    z = zlib.compressobj(9)
+    row = bytes(side + 1)  # filter byte 0 and a row of zeros
+    body = b"".join(z.compress(row) for _ in range(side)) + z.flush()
+    head = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", head) + chunk(b"IDAT", body) + chunk(b"IEND", b"")
+
+
+@pytest.fixture(scope="module")
+def pixel_limited(tmp_path_factory, request):
+    """The API (embedded backend) with ground images limited to 100k pixels (aerial: the default)."""
+    from conftest import ApiEnv, make_api_settings
+    from fastapi.testclient import TestClient
+
+    from api.main import create_app
+
+    settings = make_api_settings(
+        "sqlite-local",
+        tmp_path_factory.mktemp("pixels"),
+        request,
+        max_image_pixels={"aerial": 200_000_000, "ground": 100_000},
+    )
+    with TestClient(create_app(settings)) as c:
+        env = ApiEnv("sqlite-local", c.app, c, None)
+        headers = env.tenant().headers
+        pid = c.post("/projects", json={"name": "pixels"}, headers=headers).json()["id"]
+        yield c, headers, pid
+
+
+def test_decompression_bombs_are_refused_from_their_header(pixel_limited, make_jpeg):
+    """Three JPEGs of a few KB claiming 50000 x 50000 pixels at once, a 30000 x 30000 PNG under 1 MB and a
+    ground image over its set's limit: 422 naming the file and its pixels within 5 s, nothing decoded
+    (the process's peak memory grows by less than 300 MB), nothing stored."""
+    import resource
+    from concurrent.futures import ThreadPoolExecutor
+
+    c, h, pid = pixel_limited
+    bomb = _bomb_jpeg(make_jpeg(64, 48), 50000, 50000)
+    assert len(bomb) < 10_000
+    peak0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB
+    t0 = time.perf_counter()
+
+    def send(k: int):
+        files = {"f": (f"BOMB{k}.jpg", bomb)}
+        return c.post(f"/projects/{pid}/images", params={"set": "aerial"}, files=files, headers=h)
+
+    with ThreadPoolExecutor(3) as pool:
+        answers = list(pool.map(send, range(3)))
+    assert time.perf_counter() - t0 < 5.0
+    for k, r in enumerate(answers):
+        assert r.status_code == 422, r.text
+        assert f"BOMB{k}.jpg: 2500000000 pixels exceed the limit of 200000000" in r.text
+    png = _bomb_png(30000)
+    assert len(png) < 1_000_000
+    r = c.post(f"/projects/{pid}/images", params={"set": "aerial"}, files={"f": ("P.png", png)}, headers=h)
+    assert r.status_code == 422 and "P.png: 900000000 pixels exceed the limit" in r.text
+    ground = make_jpeg(400, 300)  # 120k pixels: over the ground set's 100k
+    r = c.post(f"/projects/{pid}/images", params={"set": "ground"}, files={"f": ("G.jpg", ground)}, headers=h)
+    assert r.status_code == 422 and "G.jpg: 400 x 300 pixels exceed the limit of 100000 pixels" in r.text
+    assert (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak0) < 300 * 1024
+    assert c.get(f"/projects/{pid}/images", headers=h).json() == []
+    ok = c.post(
+        f"/projects/{pid}/images", params={"set": "aerial"}, files={"f": ("A.jpg", ground)}, headers=h
+    )
+    assert ok.status_code == 201  # the aerial set's limit is larger
+
+
+def test_a_bomb_uploaded_in_parts_and_checked_in_the_background_ends_rejected(pixel_limited, make_jpeg):
+    c, h, pid = pixel_limited
+    bomb = _bomb_jpeg(make_jpeg(64, 48), 50000, 50000)
+    up = c.post(
+        f"/projects/{pid}/uploads", json={"name": "aerial/UP.jpg", "size": len(bomb)}, headers=h
+    ).json()
+    target = c.get(f"/projects/{pid}/uploads/{up['id']}/parts/1", headers=h).json()
+    etag = c.put(target["url"], content=bomb, headers=h).json()["etag"]
+    r = c.post(
+        f"/projects/{pid}/uploads/{up['id']}/complete",
+        json={"parts": [{"part_number": 1, "etag": etag}], "wait": False},
+        headers=h,
+    )
+    assert r.status_code == 202, r.text
+    deadline = time.monotonic() + 10
+    while (u := c.get(f"/projects/{pid}/uploads/{up['id']}", headers=h).json())["state"] == "verifying":
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert u["state"] == "rejected" and "2500000000 pixels exceed the limit" in u["error"]

@@ -83,8 +83,11 @@ def _named(files: list[ReceivedFile], errors: list[str]) -> list[tuple[ReceivedF
     return out
 
 
-def _check_files(files: list[ReceivedFile], image_set: str, sha256_fields: list[str]) -> list[CheckedImage]:
-    """Names, declared SHA-256 and decode checks of every received file; 422 listing every bad one."""
+def _check_files(
+    files: list[ReceivedFile], image_set: str, sha256_fields: list[str], max_pixels: int | None = None
+) -> list[CheckedImage]:
+    """Names, declared SHA-256, pixel limit and decode checks of every received file; 422 listing every
+    bad one."""
     errors: list[str] = []
     named = _named(files, errors)
     declared, sha_errors = declared_sha256(sha256_fields, [filename for _, filename in named])
@@ -98,7 +101,7 @@ def _check_files(files: list[ReceivedFile], image_set: str, sha256_fields: list[
             )
             continue
         try:
-            width, height = decode_check(rf.path, filename)
+            width, height = decode_check(rf.path, filename, max_pixels)
         except ImageError as e:
             errors.append(str(e))
             continue
@@ -175,7 +178,13 @@ async def upload_images(
             raise HTTPException(e.status, f"{e}{suffix}") from None
         if not files:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "no file in the request")
-        checked = await run_in_threadpool(_check_files, files, image_set, fields.get(SHA256_FIELD, []))
+        checked = await run_in_threadpool(
+            _check_files,
+            files,
+            image_set,
+            fields.get(SHA256_FIELD, []),
+            settings.max_image_pixels.get(image_set),
+        )
         await run_in_threadpool(_busy_names, session, project, {c.name for c in checked})
         try:
             results = await run_in_threadpool(store_images, session, storage, project, checked)

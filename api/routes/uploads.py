@@ -364,7 +364,9 @@ def complete_upload(
         out = _out(upload, storage).model_dump_json()
         return Response(out, status_code=status.HTTP_202_ACCEPTED, media_type="application/json")
     try:
-        row, created = finish_upload(session, storage, upload, settings.upload_tmp_dir)
+        row, created = finish_upload(
+            session, storage, upload, settings.upload_tmp_dir, settings.max_image_pixels
+        )
     except UploadRejected as e:
         storage.delete(upload.storage_key)
         _drop(session, storage, upload, abort=False)

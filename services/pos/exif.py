@@ -101,7 +101,7 @@ def check_image(path: str | Path, decode: bool = False) -> tuple[int, int]:
     try:
         with Image.open(path) as im:
             size = im.size
-    except (UnidentifiedImageError, OSError) as e:
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as e:
         raise ImageError(f"{path}: cannot read image ({e})") from None
     if path.suffix.lower() in (".jpg", ".jpeg"):
         with open(path, "rb") as f:
@@ -154,7 +154,7 @@ def read_exif(path: str | Path) -> ExifData:
             exif = im.getexif()
             gps = exif.get_ifd(_GPS_IFD)
             sub = exif.get_ifd(_EXIF_IFD)
-    except (OSError, SyntaxError, ValueError) as e:
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         raise ImageError(f"{path}: cannot read EXIF ({e})") from None
     make, model = (str(exif.get(t) or "").strip("\x00 ") or None for t in (_TAG_MAKE, _TAG_MODEL))
     data = ExifData(width, height, make=make, model=model)
