@@ -22,10 +22,14 @@ class ApiSettings(Settings):
     migrate_on_startup: bool = Field(False, description="Apply database migrations when the API starts")
 
     max_upload_bytes: int = Field(512 * MB, ge=1, description="Largest image accepted, in bytes")
-    max_image_pixels: dict[Literal["aerial", "ground"], int] = Field(
-        {"aerial": 200_000_000, "ground": 200_000_000},
-        description="Largest image accepted per set, in pixels (width x height, read from the file's header "
+    max_image_pixels_aerial: int = Field(
+        200_000_000,
+        ge=1,
+        description="Largest aerial image accepted, in pixels (width x height, read from the file's header "
         "before anything is decoded: a few KB can claim gigapixels); the default fits 100 MP survey cameras",
+    )
+    max_image_pixels_ground: int = Field(
+        200_000_000, ge=1, description="Largest ground image accepted, in pixels (as max_image_pixels_aerial)"
     )
     max_files_per_request: int = Field(1000, ge=1, description="Most files in one upload request")
     max_pos_bytes: int = Field(64 * MB, ge=1, description="Largest POS file accepted, in bytes")
@@ -82,6 +86,11 @@ class ApiSettings(Settings):
     events_poll_s: float = Field(0.5, gt=0, le=10, description="Job event stream: database poll period")
     events_heartbeat_s: float = Field(15.0, gt=0, description="Job event stream: keep-alive comment period")
     readyz_timeout_s: float = Field(5.0, gt=0, description="Readiness probe: time allowed to each check")
+
+    @property
+    def max_image_pixels(self) -> dict[str, int]:
+        """The pixel limit of each image set."""
+        return {"aerial": self.max_image_pixels_aerial, "ground": self.max_image_pixels_ground}
 
     @field_validator("bootstrap_api_key")
     @classmethod

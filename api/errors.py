@@ -25,16 +25,28 @@ def pos_error_detail(e: PosError, message: str = "invalid POS") -> dict[str, obj
     return {"message": message, "errors": e.errors}
 
 
+def _printable(value: object) -> object:
+    """A validation error's field as the UTF-8 response can carry it: lone surrogates (valid in JSON
+    escapes, not in UTF-8) replaced, in strings and in the parts of a location."""
+    if isinstance(value, str):
+        return value.encode("utf-8", "replace").decode("utf-8")
+    if isinstance(value, list | tuple):
+        return [_printable(v) for v in value]
+    return value
+
+
 def validation_detail(errors: list[dict], request: Request) -> list[dict]:
     """A 422's errors: the first few (settings.max_validation_errors), each with its location, message
     and type, and the offending input only when it is short: a large body is never echoed back."""
     limit = getattr(getattr(request.app.state, "settings", None), "max_validation_errors", 20)
     out = []
     for err in errors[:limit]:
-        item = {k: err[k] for k in ("type", "loc", "msg") if k in err}
-        try:
-            text = json.dumps(err["input"], allow_nan=False) if "input" in err else None
-        except (TypeError, ValueError):  # NaN, bytes ...: not shown
+        item = {k: _printable(err[k]) for k in ("type", "loc", "msg") if k in err}
+        try:  # the response is UTF-8: a lone surrogate in the input cannot be echoed
+            text = json.dumps(err["input"], allow_nan=False, ensure_ascii=False) if "input" in err else None
+            if text is not None:
+                text.encode("utf-8")
+        except (TypeError, ValueError):  # NaN, bytes, lone surrogates ...: not shown
             text = None
         if text is not None and len(text) <= 200:
             item["input"] = err["input"]

@@ -21,10 +21,19 @@ from api.bootstrap import ensure_api_key
 from api.config import ApiSettings
 from api.errors import install_error_handlers
 from api.gcwatch import GcWatch
-from api.middleware import BodyLimitMiddleware, RequestLogMiddleware, route_limits
+from api.middleware import (
+    BodyLimitMiddleware,
+    QueryCredentialsMiddleware,
+    RedactCredentials,
+    RequestLogMiddleware,
+    SecurityHeadersMiddleware,
+    dashboard_headers,
+    inline_script_hashes,
+    route_limits,
+)
 from api.ratelimit import make_rate_limiter
 from api.routes import ROUTERS
-from api.routes.ui import mount_ui
+from api.routes.ui import UI_DIR, mount_ui
 from api.status_cache import StatusCache
 from api.verify import Verifier
 from shared.config import Settings
@@ -138,7 +147,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(
         BodyLimitMiddleware, limit_for=body_limits(settings), read_timeout_s=settings.body_read_timeout_s
     )
+    app.add_middleware(QueryCredentialsMiddleware)
+    app.add_middleware(
+        SecurityHeadersMiddleware,
+        prefix="/ui",
+        headers=dashboard_headers(inline_script_hashes((UI_DIR / "index.html").read_text())),
+    )
     app.add_middleware(RequestLogMiddleware)
+    access = logging.getLogger("uvicorn.access")
+    if not any(isinstance(f, RedactCredentials) for f in access.filters):
+        access.addFilter(RedactCredentials())
     install_error_handlers(app)
     for router in ROUTERS:
         app.include_router(router)

@@ -1,5 +1,6 @@
 """Plain ASGI middleware (safe with streamed responses such as the event stream): request logging,
-and request body limits with a read timeout."""
+request body limits with a read timeout, credentials refused in query strings (and redacted from the
+server's access log), and the dashboard's security headers."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import time
 import uuid
 from collections.abc import Callable
 from typing import Any
+from urllib.parse import parse_qsl
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -153,3 +155,109 @@ def route_limits(rules: list[tuple[str, str, int]], default: int) -> Callable[[s
         return default
 
     return limit_for
+
+
+# query parameters that carry credentials: an access log (uvicorn's, a proxy's) writes query strings out
+CREDENTIAL_PARAMS = {"api_key", "apikey", "api-key", "key", "token", "access_token", "x-api-key"}
+CREDENTIAL_VALUE = re.compile(r"^mv_", re.IGNORECASE)  # API keys' prefix (shared.db.crud.API_KEY_PREFIX)
+
+
+def credential_params(query: str) -> list[str]:
+    """Names of the query parameters that carry a credential (by name, or an API key as value)."""
+    pairs = parse_qsl(query, keep_blank_values=True)
+    return sorted({k for k, v in pairs if k.lower() in CREDENTIAL_PARAMS or CREDENTIAL_VALUE.match(v)})
+
+
+def redact_query(path: str) -> str:
+    """A request path with the values of credential-carrying query parameters replaced by ***."""
+    base, sep, query = path.partition("?")
+    if not sep:
+        return path
+    bad = set(credential_params(query))
+    parts = []
+    for item in query.split("&"):
+        name, eq, _ = item.partition("=")
+        value = item.partition("=")[2]
+        hidden = name.lower() in CREDENTIAL_PARAMS or name in bad or CREDENTIAL_VALUE.match(value)
+        parts.append(f"{name}{eq}***" if eq and hidden else item)
+    return f"{base}?{'&'.join(parts)}"
+
+
+class RedactCredentials(logging.Filter):
+    """For uvicorn's access log (its record args: client, method, path, version, status): credential
+    values in the path's query string are written as ***."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        args = record.args
+        if isinstance(args, tuple) and len(args) >= 3 and isinstance(args[2], str) and "?" in args[2]:
+            record.args = (*args[:2], redact_query(args[2]), *args[3:])
+        return True
+
+
+class QueryCredentialsMiddleware:
+    """Refuses (400, with the reason) a request whose query string carries a credential: API keys go in
+    the Authorization header, never in a URL that logs, histories and proxies keep."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        query = scope.get("query_string", b"").decode("latin-1") if scope["type"] == "http" else ""
+        bad = credential_params(query) if query else []
+        if not bad:
+            await self.app(scope, receive, send)
+            return
+        body = json.dumps(
+            {"detail": f"credentials in the query string are refused ({', '.join(bad)}): send the API key in"
+             " the Authorization header (Bearer)"}
+        ).encode()  # fmt: skip
+        headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+        await send({"type": "http.response.start", "status": 400, "headers": headers})
+        await send({"type": "http.response.body", "body": body})
+
+
+def inline_script_hashes(html: str) -> list[str]:
+    """CSP sources ('sha256-...') of a page's inline <script> blocks (the dashboard's import map)."""
+    import base64
+    import hashlib
+
+    blocks = re.findall(r"<script(?![^>]*\bsrc=)[^>]*>(.*?)</script>", html, re.DOTALL)
+    return [f"'sha256-{base64.b64encode(hashlib.sha256(b.encode()).digest()).decode()}'" for b in blocks]
+
+
+def dashboard_headers(script_hashes: list[str]) -> list[tuple[bytes, bytes]]:
+    """The dashboard's security headers: a Content-Security-Policy that allows its own files (scripts
+    from /ui/ and its inline import map by hash, styles, images from data: and blob: URLs, the API),
+    no framing, no MIME sniffing."""
+    csp = (
+        "default-src 'self'; script-src 'self' "
+        + " ".join(script_hashes)
+        + "; style-src 'self' 'unsafe-inline';"
+        " img-src 'self' data: blob:; connect-src 'self'; object-src 'none'; base-uri 'self';"
+        " frame-ancestors 'none'; form-action 'self'"
+    )
+    return [
+        (b"content-security-policy", csp.encode()),
+        (b"x-content-type-options", b"nosniff"),
+        (b"x-frame-options", b"DENY"),
+        (b"referrer-policy", b"no-referrer"),
+    ]
+
+
+class SecurityHeadersMiddleware:
+    """Adds `headers` to every response under `prefix` (the dashboard's /ui/)."""
+
+    def __init__(self, app: ASGIApp, prefix: str, headers: list[tuple[bytes, bytes]]) -> None:
+        self.app, self.prefix, self.headers = app, prefix, headers
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or not scope["path"].startswith(self.prefix):
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                message["headers"] = [*message.get("headers", []), *self.headers]
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)

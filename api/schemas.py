@@ -32,6 +32,20 @@ class ProjectCreate(In):
         None, description="Local frame origin (lat, lon, h); default: derived from the POS"
     )
 
+    @field_validator("crs")
+    @classmethod
+    def _known_crs(cls, v: str | None) -> str | None:
+        """A CRS pyproj knows (else the job's GIS outputs would fail minutes later)."""
+        if v is not None:
+            from pyproj import CRS
+            from pyproj.exceptions import CRSError
+
+            try:
+                CRS.from_user_input(v)
+            except CRSError:
+                raise ValueError(f"unknown CRS {v!r} (e.g. EPSG:32633)") from None
+        return v
+
     @field_validator("origin")
     @classmethod
     def _origin_on_earth(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:

@@ -260,7 +260,7 @@ def pixel_limited(tmp_path_factory, request):
         "sqlite-local",
         tmp_path_factory.mktemp("pixels"),
         request,
-        max_image_pixels={"aerial": 200_000_000, "ground": 100_000},
+        max_image_pixels_ground=100_000,
     )
     with TestClient(create_app(settings)) as c:
         env = ApiEnv("sqlite-local", c.app, c, None)
@@ -326,3 +326,56 @@ def test_a_bomb_uploaded_in_parts_and_checked_in_the_background_ends_rejected(pi
         assert time.monotonic() < deadline
         time.sleep(0.05)
     assert u["state"] == "rejected" and "2500000000 pixels exceed the limit" in u["error"]
+
+
+def test_a_lone_surrogate_in_json_is_422_not_500(limited):
+    c, h, _ = limited
+    for body in ('{"name": "a\\ud800b"}', '{"name": 5, "description": "\\udfff"}', '{"name": "\\ud800" }'):
+        r = c.post("/projects", content=body.encode(), headers={**h, "Content-Type": "application/json"})
+        assert r.status_code == 422, (body, r.text)
+        r.json()  # valid UTF-8 JSON
+
+
+def test_an_unknown_crs_is_422_at_creation(limited):
+    c, h, _ = limited
+    r = c.post("/projects", json={"name": "crs", "crs": "EPSG:99999999"}, headers=h)
+    assert r.status_code == 422 and "unknown CRS 'EPSG:99999999'" in r.text
+    assert c.post("/projects", json={"name": "crs", "crs": "EPSG:32633"}, headers=h).status_code == 201
+
+
+def test_credentials_in_a_query_string_are_refused_and_never_logged(limited):
+    import logging
+
+    from api.middleware import RedactCredentials
+
+    c, h, pid = limited
+    for query in ("api_key=mv_secret", "token=abc", "q=mv_0123456789abcdef"):
+        r = c.get(f"/projects/{pid}?{query}", headers=h)
+        assert r.status_code == 400 and "Authorization header" in r.text, query
+    assert c.get(f"/projects/{pid}?wait=1", headers=h).status_code == 200
+    access = logging.getLogger("uvicorn.access")
+    assert any(isinstance(f, RedactCredentials) for f in access.filters)  # installed by create_app
+    record = logging.LogRecord(
+        "uvicorn.access", logging.INFO, __file__, 1, '%s - "%s %s HTTP/%s" %d',
+        ("127.0.0.1:5", "GET", "/projects?api_key=mv_secret&x=1&k=mv_abc", "1.1", 400), None,
+    )  # fmt: skip
+    assert RedactCredentials().filter(record)
+    line = record.getMessage()
+    assert "mv_secret" not in line and "mv_abc" not in line and "api_key=***&x=1&k=***" in line
+
+
+def test_the_dashboard_is_served_with_security_headers(limited):
+    import base64
+    import hashlib
+    import re
+
+    c, _, _ = limited
+    r = c.get("/ui/")
+    assert r.status_code == 200
+    csp = r.headers["content-security-policy"]
+    assert "frame-ancestors 'none'" in csp and "object-src 'none'" in csp and "'unsafe-eval'" not in csp
+    assert r.headers["x-content-type-options"] == "nosniff" and r.headers["x-frame-options"] == "DENY"
+    importmap = re.search(r'<script type="importmap">(.*?)</script>', r.text, re.DOTALL).group(1)
+    digest = base64.b64encode(hashlib.sha256(importmap.encode()).digest()).decode()
+    assert f"'sha256-{digest}'" in csp  # the page's inline import map may run, nothing else inline
+    assert "content-security-policy" not in c.get("/healthz").headers
