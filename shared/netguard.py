@@ -162,6 +162,24 @@ def system_resolver(host: str, port: int) -> list[str]:
     return list(dict.fromkeys(str(i[4][0]) for i in infos))
 
 
+def check_registration(
+    url: str, allow: list[IPNetwork] | None = None, resolver: Resolver | None = None
+) -> None:
+    """check_literal, and every address the URL's host resolves to now (a host name pointing at loopback
+    or a private network is refused when it is registered, not only at delivery). A name that does not
+    resolve yet is left to the check at every delivery. Raises BlockedURL."""
+    check_literal(url, allow)
+    _, host, port = split_url(url)
+    if literal_address(host) is not None:
+        return
+    try:
+        addresses = (resolver or system_resolver)(host, port)
+    except BlockedURL:
+        return
+    for a in addresses:
+        check_address(ipaddress.ip_address(a.split("%", 1)[0]), allow or [])
+
+
 def resolve(url: str, allow: list[IPNetwork] | None = None, resolver: Resolver = system_resolver) -> Target:
     """Resolve a URL's host and check every address it resolves to; the Target connects to the first.
 

@@ -317,3 +317,32 @@ def test_delivery_to_a_name_resolving_to_loopback_is_refused_before_connecting(a
         assert "hunter2" not in rows
     finally:
         receiver.close()
+
+
+def test_a_host_name_resolving_to_an_internal_address_is_refused_at_registration(
+    tmp_path, request, monkeypatch
+) -> None:
+    """POST /webhooks resolves a host name too: one that points at loopback or a private network now is
+    422 (not only refused at delivery); one that does not resolve yet is left to the delivery's check."""
+    from conftest import ApiEnv, make_api_settings
+    from fastapi.testclient import TestClient
+
+    from api.main import create_app
+    from shared import netguard
+
+    names = {"evil.example.com": ["127.0.0.1"], "lan.example.com": ["93.184.216.34", "192.168.1.5"]}
+
+    def resolver(host: str, port: int) -> list[str]:
+        if host not in names:
+            raise netguard.BlockedURL(f"cannot resolve {host}")
+        return names[host]
+
+    monkeypatch.setattr(netguard, "system_resolver", resolver)
+    settings = make_api_settings("sqlite-local", tmp_path, request, webhook_allow_networks="")
+    with TestClient(create_app(settings)) as c:
+        headers = ApiEnv("sqlite-local", c.app, c, None).tenant().headers
+        for url, why in (("http://evil.example.com/h", "loopback"), ("https://lan.example.com/h", "private")):
+            r = c.post("/webhooks", json={"url": url}, headers=headers)
+            assert r.status_code == 422 and why in r.text, (url, r.text)
+        r = c.post("/webhooks", json={"url": "https://not-yet.example.com/h"}, headers=headers)
+        assert r.status_code == 201

@@ -30,10 +30,10 @@ def create_webhook(
 ) -> WebhookCreated:
     """Register a URL for events; the response holds the signing secret, shown only this once.
 
-    422 for a URL that names a non-public address (in any encoding) or a local name; host names are
-    resolved and checked again at every delivery."""
+    422 for a URL that names a non-public address (in any encoding), a local name, or a host name that
+    resolves to a non-public address now; host names are resolved and checked again at every delivery."""
     try:
-        netguard.check_literal(str(body.url), netguard.parse_networks(settings.webhook_allow_networks))
+        netguard.check_registration(str(body.url), netguard.parse_networks(settings.webhook_allow_networks))
     except netguard.BlockedURL as e:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"webhook url {e}") from e
     hook = Webhook(
