@@ -107,6 +107,33 @@ def truth_alignment(scene: Path, sparse: Path) -> tuple[float, np.ndarray, np.nd
     return _kabsch(np.array([est[n].center for n in names]), np.array([gt[n].center for n in names]), True)
 
 
+def aerial_truth_depths(gt, sparse: Path, width: int) -> list[tuple]:
+    """(camera `width` px wide, pose, the truth's z-depth there) of every image of the aerial model
+    `sparse`, from a GroundTruthRenderer `gt` aligned to it."""
+    from services.colmap_model import read_model
+    from services.geometry import scaled_camera
+
+    cams, poses = read_model(sparse)
+    out = []
+    for n, p in sorted(poses.items()):
+        c = scaled_camera(cams[n], width)
+        out.append((c, p, gt.render(c, p)[1]))
+    return out
+
+
+def aerial_seen_count(X: np.ndarray, aerial: list[tuple]) -> np.ndarray:
+    """How many of the aerial images (aerial_truth_depths) see each point X (N, 3) of the true surface:
+    it projects into the image and the truth's depth there is within 3% + 0.2 m of it (not hidden)."""
+    seen = np.zeros(len(X), int)
+    for ca, pa, da in aerial:
+        uv, z = pa.project(ca.K, X)
+        ok = (z > 0) & (uv >= 0).all(1) & (uv[:, 0] < ca.width - 1) & (uv[:, 1] < ca.height - 1)
+        i = np.nonzero(ok)[0]
+        zs = da[uv[i, 1].astype(int), uv[i, 0].astype(int)]
+        seen[i[np.abs(zs - z[i]) <= 0.03 * z[i] + 0.2]] += 1
+    return seen
+
+
 def aerial_observable(scene: Path, sparse: Path, width: int = 160, min_images: int = 2) -> dict[str, float]:
     """Per ground image, the fraction of what it sees (the truth's depth at its true pose, `width` px)
     that at least `min_images` aerial images of the model see too (the truth's depth at their poses,
@@ -117,11 +144,7 @@ def aerial_observable(scene: Path, sparse: Path, width: int = 160, min_images: i
     from services.views import GroundTruthRenderer
 
     gt = GroundTruthRenderer(scene, sparse)
-    cams, poses = read_model(sparse)
-    aerial = []
-    for n, p in sorted(poses.items()):
-        c = scaled_camera(cams[n], 3 * width)
-        aerial.append((c, p, gt.render(c, p)[1]))
+    aerial = aerial_truth_depths(gt, sparse, 3 * width)
     s, R, t = truth_alignment(scene, sparse)  # truth = s R model + t
     gcams, gposes = read_model(scene / "gt" / "sparse")
     out = {}
@@ -132,13 +155,7 @@ def aerial_observable(scene: Path, sparse: Path, width: int = 160, min_images: i
         d = gt.render(c, pose)[1]
         v, u = np.nonzero(d > 0)
         X = pose.unproject(c.K, np.stack([u + 0.5, v + 0.5], 1), d[v, u].astype(float))
-        seen = np.zeros(len(X), int)
-        for ca, pa, da in aerial:
-            uv, z = pa.project(ca.K, X)
-            ok = (z > 0) & (uv >= 0).all(1) & (uv[:, 0] < ca.width - 1) & (uv[:, 1] < ca.height - 1)
-            i = np.nonzero(ok)[0]
-            zs = da[uv[i, 1].astype(int), uv[i, 0].astype(int)]
-            seen[i[np.abs(zs - z[i]) <= 0.03 * z[i] + 0.2]] += 1
+        seen = aerial_seen_count(X, aerial)
         out[g] = float((seen >= min_images).mean()) if len(X) else 0.0
     return out
 

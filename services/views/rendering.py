@@ -36,6 +36,8 @@ from services.views.source_colour import SourceImages
 from services.views.source_colour import confs as source_confs
 from services.views.stereo import StereoSurface
 from services.views.stereo import confs as stereo_confs
+from services.views.sweep import PlaneSweep
+from services.views.sweep import confs as sweep_confs
 from shared.logging import stage
 
 logger = logging.getLogger("midview.views")
@@ -54,9 +56,12 @@ confs: dict[str, dict[str, Any]] = {
         # the views' depth: "proxy" (the planes of the sparse model, the 3DGS's surfaces the aerial
         # images do not see through) or "stereo" (the TSDF of the aerial images' pairwise dense stereo,
         # services.views.stereo; the proxy's where it has no surface); bench only: "truth" (a synthetic
-        # scene's true depth, the renderer's `scene`: the bound of colour from the aerial images)
+        # scene's true depth, the renderer's `scene`: the bound of colour from the aerial images); "sweep"
+        # (the proxy's depth refined by a plane sweep over the aerial images, services.views.sweep; on
+        # isprs's planned views 0.91% median error against the proxy's 0.75%: off)
         "depth": "proxy",
         "stereo": dict(stereo_confs["default"]),
+        "sweep": dict(sweep_confs["default"]),
     },
 }
 
@@ -134,8 +139,9 @@ class SourceRenderer:
                 if stereo_cache is not None
                 else StereoSurface.build(rec, image_dir, c["stereo"])
             )
-        elif c["depth"] != "proxy":
-            raise ValueError(f"unknown views' depth {c['depth']!r} (proxy, stereo, truth)")
+        elif c["depth"] not in ("proxy", "sweep"):
+            raise ValueError(f"unknown views' depth {c['depth']!r} (proxy, sweep, stereo, truth)")
+        self.sweep = PlaneSweep(self.sources, c["sweep"]) if c["depth"] == "sweep" else None
         self.colour = colour
         self.last_stats: dict = {}
 
@@ -158,9 +164,13 @@ class SourceRenderer:
             depth = self.proxy.fuse(camera, pose, depth, lambda X: self.sources.seen_through(X, depth_fn))
         if self.stereo is not None:
             depth = _nearest(self.stereo.depth(camera, pose), depth)
-        if not self.colour:
+        if not self.colour:  # a depth probe of the planner: the sweep is for the rendered views
             return rgb, depth
+        swept: dict = {}
+        if self.sweep is not None:
+            depth, swept = self.sweep.refine(camera, pose, depth, depth_fn)
         rgb, depth, self.last_stats = self.sources.colour(camera, pose, depth, rgb, depth_fn)
+        self.last_stats.update(swept)
         return rgb, depth
 
 

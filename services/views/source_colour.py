@@ -170,7 +170,7 @@ class SourceImages:
         if src["name"] not in self._depth_errors:
             img = self._rec.images[src["image_id"]]
             P = [self._rec.points3D[p.point3D_id].xyz for p in img.points2D if p.has_point3D()]
-            _, uv, z = self._inside(src, np.array(P, float).reshape(-1, 3))
+            _, uv, z = self.inside(src, np.array(P, float).reshape(-1, 3))
             d = self.depth_at(src, uv, depth_fn)
             ok = d > 0
             self._depth_errors[src["name"]] = (
@@ -179,7 +179,7 @@ class SourceImages:
         return self._depth_errors[src["name"]]
 
     @staticmethod
-    def _inside(src: dict, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def inside(src: dict, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(indices of the points X (N, 3) in front of the source and inside its image, their pixels in
         COLMAP convention, their z-depths)."""
         sp: Pose = src["pose"]
@@ -227,7 +227,7 @@ class SourceImages:
         through = np.zeros(len(X), np.int32)
         at = np.zeros(len(X), np.int32)
         for src in self.sources:
-            idx, uv, z = self._inside(src, X)
+            idx, uv, z = self.inside(src, X)
             if len(idx) == 0:
                 continue
             err = self.depth_error(src, depth_fn)
@@ -243,25 +243,36 @@ class SourceImages:
         return (through >= min_sources) & (through > at)
 
     # -- colour ----------------------------------------------------------------------------------
-    def _score(
-        self, src: dict, X: np.ndarray, ray_v: np.ndarray, depth_fn: DepthFn
+    def score(
+        self, src: dict, X: np.ndarray, ray_v: np.ndarray, depth_fn: DepthFn | None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The points X (N, 3) the source sees (in its image, within max_angle_deg of the view's rays
-        ray_v (N, 3), not hidden in its 3DGS depth): (indices, pixels, penalties, metres per pixel)."""
+        ray_v (N, 3), not hidden in its 3DGS depth unless depth_fn is None): (indices, pixels, penalties,
+        metres per pixel)."""
         c = self.conf
-        idx, uv, z = self._inside(src, X)
+        idx, uv, z = self.inside(src, X)
         if len(idx) == 0:
             return idx, uv, z, z
         ray_s = X[idx] - src["pose"].center
         cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx]) / np.linalg.norm(ray_s, axis=1)
-        ds = self.depth_at(src, uv, depth_fn)
         ok = cosang >= np.cos(np.radians(float(c["max_angle_deg"])))
-        ok &= (ds > 0) & (z <= ds * (1.0 + float(c["visibility_rel"])) + float(c["visibility_abs_m"]))
+        if depth_fn is not None:
+            ds = self.depth_at(src, uv, depth_fn)
+            ok &= (ds > 0) & (z <= ds * (1.0 + float(c["visibility_rel"])) + float(c["visibility_abs_m"]))
         idx, uv, z, cosang = idx[ok], uv[ok], z[ok], cosang[ok]
         gsd = z / float(src["camera"].mean_focal_length())
         angle = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
         penalty = angle + float(c["resolution_weight_deg"]) * np.log2(np.maximum(gsd, 1e-6))
         return idx, uv, penalty, gsd
+
+    def best_sources(self, X: np.ndarray, ray_v: np.ndarray, depth_fn: DepthFn | None, k: int) -> list[int]:
+        """Indices of at most k sources, those that are the best or second best (lowest penalty of
+        `score`) for the most of the points X (N, 3) seen along the unit rays ray_v (N, 3)."""
+        probe = [(si, *self.score(src, X, ray_v, depth_fn)[::2]) for si, src in enumerate(self.sources)]
+        picks = np.concatenate(_two_best(len(X), probe))
+        counts = np.bincount(picks[picks >= 0], minlength=len(self.sources))
+        order = np.argsort(-counts, kind="stable")[:k]
+        return [int(i) for i in order if counts[i] > 0]
 
     def colour(
         self,
@@ -287,11 +298,11 @@ class SourceImages:
         # the candidates: sources that are the best or second best for some of a sparse sample of the points
         step = max(1, n // 4000)
         probe = [
-            (si, *self._score(src, X[::step], ray_v[::step], depth_fn)[::2])
+            (si, *self.score(src, X[::step], ray_v[::step], depth_fn)[::2])
             for si, src in enumerate(self.sources)
         ]
         chosen = sorted({int(i) for i in np.concatenate(_two_best(len(X[::step]), probe)) if i >= 0})
-        scored = {si: self._score(self.sources[si], X, ray_v, depth_fn) for si in chosen}
+        scored = {si: self.score(self.sources[si], X, ray_v, depth_fn) for si in chosen}
         best_i, second_i = _two_best(n, [(si, idx, pen) for si, (idx, _, pen, _) in scored.items()])
         scored = {si: (idx, uv, gsd / gsd_v[idx]) for si, (idx, uv, _, gsd) in scored.items()}
         first_rgb = np.zeros((n, 3), np.float32)
