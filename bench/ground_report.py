@@ -55,6 +55,33 @@ def ground_ground(report: dict, registered: set[str], min_pair: int) -> dict[str
     return out
 
 
+def ground_pair_truth(scene: Path, database: Path, report: dict) -> dict[str, dict]:
+    """Per verified ground-ground pair of the combined report ("g0 g1"): its inlier matches in the combined
+    database and how many of them are GT-correct (within 3 px through the true depth, both ways)."""
+    import pycolmap
+
+    from services.evaluation.common import read_gt_model
+    from services.evaluation.matches import gt_correct_mask
+    from services.synth import read_depth
+
+    cams, poses = read_gt_model(scene)
+    out: dict[str, dict] = {}
+    with pycolmap.Database.open(str(database)) as db:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        for key, rec in report.get("ground_pairs", {}).items():
+            if not rec.get("accepted"):
+                continue
+            a, b = key.split(" ")
+            m = np.asarray(db.read_two_view_geometry(ids[a], ids[b]).inlier_matches).reshape(-1, 2)
+            kp = [np.asarray(db.read_keypoints(ids[n]))[:, :2] for n in (a, b)]
+            ok = gt_correct_mask(
+                kp[0][m[:, 0]], kp[1][m[:, 1]], cams[a], poses[a], read_depth(scene, a),
+                cams[b], poses[b], read_depth(scene, b),
+            )  # fmt: skip
+            out[key] = {"inliers": len(m), "gt_correct": int(ok.sum())}
+    return out
+
+
 def cause(row: dict, metres: float, min_pair: int) -> str:
     """One of CAUSES for a row of ground_rows."""
     if row["registered"]:
@@ -147,9 +174,15 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = ground_rows(args.scene, args.job, args.job / "eval-ground-report", args.metres, args.min_pair)
     print_rows(rows)
+    combined = Job.load(args.job).combined.dir
+    report = json.loads((combined / "report.json").read_text())
+    pairs = ground_pair_truth(args.scene, combined / "database.db", report)
+    false = sorted(k for k, p in pairs.items() if p["gt_correct"] == 0)
+    print(f"verified ground-ground pairs: {len(pairs)}, without a GT-correct match: {len(false)} {false}")
     if args.json:
         doc = {"command": "python bench/ground_report.py " + " ".join(argv or sys.argv[1:])}
-        args.json.write_text(json.dumps({**doc, **summary(rows), "per_image": rows}, indent=1))
+        extra = {"ground_pairs": pairs, "ground_pairs_without_correct": false}
+        args.json.write_text(json.dumps({**doc, **summary(rows), **extra, "per_image": rows}, indent=1))
     return 0
 
 
