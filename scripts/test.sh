@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# Sets up the environment, lints, and runs the whole test suite. Extra arguments go to pytest.
+# Sets up the environment, lints, and runs the whole test suite. Extra arguments go to pytest
+# (the inner loop: bash scripts/test.sh -m "not slow").
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 VENV=${MIDVIEW_VENV:-.venv}
 "$VENV/bin/ruff" check .
+"$VENV/bin/ruff" format --check .  # the formatting is ruff's (pre-commit formats on commit)
 "$VENV/bin/lint-imports"  # the architecture contracts of pyproject.toml
 "$VENV/bin/deptry" .  # no missing, unused or transitive-only dependency
 # the compose file is validated by tests/test_deploy.py with Debian's docker-compose (no engine needed)
@@ -26,7 +28,7 @@ if ! command -v redis-server >/dev/null && command -v apt-get >/dev/null; then
     || echo "test: redis-server could not be installed; the fault tests will be skipped"
 fi
 set +e
-"$VENV/bin/python" -m pytest -ra "$@"
+"$VENV/bin/python" -m pytest -ra --durations=25 "$@"  # the 25 slowest tests: where the suite's time goes
 rc=$?
 set -e
 if [ $rc -eq 5 ]; then echo "pytest collected no tests"; exit 0; fi
