@@ -208,3 +208,47 @@ def test_pairs_of_a_match_file(api_env, make_jpeg, tmp_path: Path) -> None:
     _record(api_env, t, pid, jid, tmp_path / "bad.h5", name="bad.h5")
     r = c.get(f"/jobs/{jid}/pairs", params={"artifact": "bad.h5"}, headers=t.headers)
     assert r.status_code == 422
+
+
+def test_deleting_an_image_while_a_job_is_created_never_removes_a_frozen_input(
+    api_env, make_jpeg, monkeypatch
+) -> None:
+    """DELETE of an image and POST of a job at once, 100 rounds: either the delete wins (the job's frozen
+    inputs lack the image) or the job does (the delete answers 409); never a 204 for an image the new
+    job froze. The project's row serialises the two (crud.lock_project)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from conftest import jobbable_project
+
+    from api.ratelimit import MemoryRateLimiter
+    from shared.db.models import Job
+
+    # 500 requests in a few seconds from one key: past its burst, which is not what this test is about
+    monkeypatch.setattr(api_env.app.state, "rate_limiter", MemoryRateLimiter(10**6, 10**6))
+    c, t = api_env.client, api_env.tenant()
+    pid = jobbable_project(c, t.headers, make_jpeg, aerial=4)
+    url = f"/projects/{pid}/images/aerial/A4.jpg"
+    outcomes = {"delete won": 0, "job won": 0}
+    with ThreadPoolExecutor(2) as pool:
+        for k in range(100):
+            if c.get(url, headers=t.headers).status_code == 404:
+                files = {"f": ("A4.jpg", make_jpeg(seed=3))}
+                r = c.post(
+                    f"/projects/{pid}/images", params={"set": "aerial"}, files=files, headers=t.headers
+                )
+                assert r.status_code in (200, 201), r.text
+            deleting = pool.submit(c.delete, url, headers=t.headers)
+            creating = pool.submit(c.post, f"/projects/{pid}/jobs", json={}, headers=t.headers)
+            deleted, created = deleting.result(), creating.result()
+            assert deleted.status_code in (204, 409), deleted.text
+            if created.status_code != 201:  # the POS names an image the delete removed: 4xx, nothing made
+                assert 400 <= created.status_code < 500, created.text
+                continue
+            job_id = created.json()["id"]
+            with api_env.session() as s:
+                frozen = "aerial/A4.jpg" in (s.get(Job, job_id).inputs or {}).get("images", {})
+            assert not (deleted.status_code == 204 and frozen), f"round {k}: a frozen input was deleted"
+            assert deleted.status_code == 204 or frozen, f"round {k}: 409 for an image no job uses"
+            outcomes["delete won" if deleted.status_code == 204 else "job won"] += 1
+            assert c.post(f"/jobs/{job_id}/cancel", headers=t.headers).status_code == 200
+    assert sum(outcomes.values()) >= 50, outcomes

@@ -434,8 +434,21 @@ def active_jobs(session: Session, project_id: str) -> list[Job]:
     return list(session.scalars(stmt.order_by(Job.created_at)))
 
 
+def lock_project(session: Session, project_id: str) -> Project:
+    """The project, its row locked until the transaction ends (FOR UPDATE on PostgreSQL; SQLite's write
+    transactions are serial already): what changes a project's inputs and what snapshots them for a job
+    take it first, so that one waits for the other (a delete never removes an image that a job created
+    meanwhile has frozen). NotFoundError when absent."""
+    project = session.get(Project, str(project_id), with_for_update=True, populate_existing=True)
+    if project is None:
+        raise NotFoundError(f"project {project_id} not found")
+    return project
+
+
 def check_inputs_free(session: Session, project_id: str, image_name: str | None = None) -> None:
-    """ConflictError when a queued or running job uses the image (or, without a name, any input)."""
+    """ConflictError when a queued or running job uses the image (or, without a name, any input); the
+    project's row stays locked until the caller's transaction ends (lock_project)."""
+    lock_project(session, project_id)
     busy = [
         j.id
         for j in active_jobs(session, project_id)
@@ -458,7 +471,7 @@ def create_job(
 ) -> Job:
     """A queued job of the project, on a snapshot of its inputs (input_snapshot, by default now's);
     ConflictError if the project has a job with this client_key already (job_by_key finds it)."""
-    project = _project(session, project_id)
+    project = lock_project(session, project_id)  # the snapshot waits for a delete of its inputs under way
     snap = input_snapshot(session, project.id) if inputs is None else inputs
     job = Job(
         project_id=project.id,
