@@ -379,3 +379,36 @@ def test_the_dashboard_is_served_with_security_headers(limited):
     digest = base64.b64encode(hashlib.sha256(importmap.encode()).digest()).decode()
     assert f"'sha256-{digest}'" in csp  # the page's inline import map may run, nothing else inline
     assert "content-security-policy" not in c.get("/healthz").headers
+
+
+def test_a_trickling_upload_holds_no_write_lock(tmp_path, request):
+    """Embedded (SQLite): an image upload whose body trickles in holds no database lock while it does;
+    another write goes through at once (it used to wait for SQLite's 10 s busy timeout, then fail)."""
+    import uuid
+
+    import httpx
+    from conftest import make_api_settings, settings_environment
+    from servers import start_uvicorn
+
+    key = "mv_trickle-" + uuid.uuid4().hex
+    settings = make_api_settings("sqlite-local", tmp_path, request, bootstrap_api_key=key)
+    server = start_uvicorn(settings_environment(settings), tmp_path / "uvicorn.log")
+    auth = {"Authorization": f"Bearer {key}"}
+    try:
+        pid = httpx.post(f"{server.base_url}/projects", json={"name": "slow"}, headers=auth).json()["id"]
+        host, port = server.base_url.removeprefix("http://").split(":")
+        with socket.create_connection((host, int(port)), timeout=10) as sock:
+            head = (
+                f"POST /projects/{pid}/images?set=aerial HTTP/1.1\r\nHost: x\r\n"
+                f"Authorization: Bearer {key}\r\n"
+                "Content-Type: multipart/form-data; boundary=b0\r\nContent-Length: 100000\r\n\r\n"
+                '--b0\r\nContent-Disposition: form-data; name="f"; filename="A.jpg"\r\n'
+                "Content-Type: image/jpeg\r\n\r\n\xff\xd8"
+            )
+            sock.sendall(head.encode("latin-1"))  # and nothing more for now: the body trickles
+            time.sleep(0.5)
+            t0 = time.perf_counter()
+            r = httpx.post(f"{server.base_url}/projects", json={"name": "other"}, headers=auth, timeout=3.0)
+            assert r.status_code == 201 and time.perf_counter() - t0 < 2.0, r.text
+    finally:
+        server.stop()

@@ -165,6 +165,8 @@ async def upload_images(
     a malformed digest or one naming no file of the request rejects the whole request (422, one reason
     per file) and nothing is stored. Files without a `sha256` field are not checked this way.
     E.g. `curl -F files=@A1.jpg -F sha256=A1.jpg:$(sha256sum A1.jpg | cut -c1-64) ...`."""
+    # no database connection (on SQLite: no write lock) while the bytes flow: a slow client holds nothing
+    await run_in_threadpool(session.close)
     with tempfile.TemporaryDirectory(prefix="midview-upload-", dir=settings.upload_tmp_dir) as tmp:
         try:
             files, fields = await receive_files(
