@@ -158,8 +158,10 @@ def route_limits(rules: list[tuple[str, str, int]], default: int) -> Callable[[s
 
 
 # query parameters that carry credentials: an access log (uvicorn's, a proxy's) writes query strings out
-CREDENTIAL_PARAMS = {"api_key", "apikey", "api-key", "key", "token", "access_token", "x-api-key"}
-CREDENTIAL_VALUE = re.compile(r"^mv_", re.IGNORECASE)  # API keys' prefix (shared.db.crud.API_KEY_PREFIX)
+# (not `key`: a job's idempotency key is a query parameter of GET .../jobs)
+CREDENTIAL_PARAMS = {"api_key", "apikey", "api-key", "access_token", "x-api-key", "authorization"}
+# an API key as any parameter's value: its prefix (shared.db.crud.API_KEY_PREFIX) and a key's length
+CREDENTIAL_VALUE = re.compile(r"^mv_[A-Za-z0-9_-]{20,}$")
 
 
 def credential_params(query: str) -> list[str]:

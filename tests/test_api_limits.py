@@ -349,15 +349,17 @@ def test_credentials_in_a_query_string_are_refused_and_never_logged(limited):
     from api.middleware import RedactCredentials
 
     c, h, pid = limited
-    for query in ("api_key=mv_secret", "token=abc", "q=mv_0123456789abcdef"):
+    for query in ("api_key=mv_secret", "access_token=abc", "q=mv_0123456789abcdefghijklmnop"):
         r = c.get(f"/projects/{pid}?{query}", headers=h)
         assert r.status_code == 400 and "Authorization header" in r.text, query
     assert c.get(f"/projects/{pid}?wait=1", headers=h).status_code == 200
+    assert c.get(f"/projects/{pid}/jobs?key=mv_job-7", headers=h).status_code == 200  # a job's key
     access = logging.getLogger("uvicorn.access")
     assert any(isinstance(f, RedactCredentials) for f in access.filters)  # installed by create_app
+    path = "/projects?api_key=mv_secret&x=1&k=mv_abcdefghijklmnopqrstuvwxyz"
     record = logging.LogRecord(
         "uvicorn.access", logging.INFO, __file__, 1, '%s - "%s %s HTTP/%s" %d',
-        ("127.0.0.1:5", "GET", "/projects?api_key=mv_secret&x=1&k=mv_abc", "1.1", 400), None,
+        ("127.0.0.1:5", "GET", path, "1.1", 400), None,
     )  # fmt: skip
     assert RedactCredentials().filter(record)
     line = record.getMessage()
