@@ -31,6 +31,12 @@ class ApiSettings(Settings):
     max_image_pixels_ground: int = Field(
         200_000_000, ge=1, description="Largest ground image accepted, in pixels (as max_image_pixels_aerial)"
     )
+    upload_expiry_h: float = Field(
+        24.0,
+        gt=0,
+        description="A resumable upload still open this many hours after it started is aborted"
+        " (its parts deleted from the storage)",
+    )
     max_files_per_request: int = Field(1000, ge=1, description="Most files in one upload request")
     max_pos_bytes: int = Field(64 * MB, ge=1, description="Largest POS file accepted, in bytes")
     max_json_bytes: int = Field(1 * MB, ge=1024, description="Largest JSON request body, in bytes")

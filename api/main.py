@@ -84,10 +84,12 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
 
 
 async def _sweep_uploads(app: FastAPI) -> None:
-    """Check again, now and every verify_sweep_s, the uploads left verifying (api/verify.py)."""
+    """Check again, now and every verify_sweep_s, the uploads left verifying, and expire those left open
+    too long (api/verify.py)."""
     while True:
         try:
             await run_in_threadpool(app.state.verifier.sweep)
+            await run_in_threadpool(app.state.verifier.expire)
         except Exception:  # the database may be away for a while: the next sweep tries again
             log.exception("upload verification sweep failed")
         await asyncio.sleep(app.state.settings.verify_sweep_s)
@@ -143,6 +145,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         settings.upload_tmp_dir,
         settings.verify_workers,
         max_pixels=settings.max_image_pixels,
+        expiry_s=settings.upload_expiry_h * 3600.0,
     )
     app.add_middleware(
         BodyLimitMiddleware, limit_for=body_limits(settings), read_timeout_s=settings.body_read_timeout_s

@@ -29,7 +29,7 @@ from api.ingest import decode_check, exif_meta, hash_stream
 from shared.db import crud
 from shared.db.models import Image, Upload, utcnow
 from shared.images import ImageError
-from shared.storage import Storage, StorageKeyError
+from shared.storage import Storage, StorageError, StorageKeyError
 
 log = logging.getLogger("midview.api.verify")
 
@@ -109,9 +109,11 @@ class Verifier:
         workers: int = 1,
         stale_s: float = 300.0,
         max_pixels: dict[str, int] | None = None,
+        expiry_s: float = 24 * 3600.0,
     ) -> None:
         self.maker, self.read_maker, self.storage = maker, read_maker, storage
         self.tmp_dir, self.stale_s, self.max_pixels = tmp_dir, stale_s, max_pixels
+        self.expiry_s = expiry_s
         self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="verify")
 
     def submit(self, upload_id: str):
@@ -155,6 +157,26 @@ class Verifier:
             .values(verify_started_at=now)
         )
         return result.rowcount == 1
+
+    def expire(self, now: datetime | None = None) -> list[str]:
+        """Abort the uploads left open longer than expiry_s since they started (their parts deleted
+        from the storage, their rows gone); their ids."""
+        cutoff = (now or utcnow()) - timedelta(seconds=self.expiry_s)
+        with self.read_maker() as session:  # no write lock (SQLite) while there is nothing to expire
+            ids = session.scalars(
+                sa.select(Upload.id).where(Upload.state == "open", Upload.created_at < cutoff)
+            ).all()
+        if not ids:
+            return []
+        with self.maker() as session:
+            rows = session.scalars(sa.select(Upload).where(Upload.id.in_(ids), Upload.state == "open")).all()
+            for upload in rows:
+                with contextlib.suppress(StorageError):
+                    self.storage.abort_multipart(upload.storage_key, upload.storage_upload_id)
+                session.delete(upload)
+                log.info("upload %s of %s expired: open since %s", upload.id, upload.name, upload.created_at)
+            session.commit()
+        return [u.id for u in rows]
 
     def sweep(self, now: datetime | None = None) -> list[str]:
         """Claim and check the uploads left verifying past their claim; their ids."""

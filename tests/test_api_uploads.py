@@ -365,3 +365,62 @@ def test_the_start_gives_every_part_url_with_presigned_parts(api_env, make_jpeg)
     assert all(
         u.get("part_urls") is None for u in c.get(f"/projects/{pid}/uploads", headers=t.headers).json()
     )
+
+
+def test_a_part_of_the_wrong_size_is_refused_before_anything_is_assembled(api_env, make_jpeg) -> None:
+    """A presigned part URL signs the part's length: the storage refuses a PUT of any other length. A
+    part of the wrong size that the storage holds anyway is refused when the upload completes (422 naming
+    it), before the parts are assembled or read; the right part sent again completes the upload."""
+    from datetime import timedelta
+
+    from shared.db.models import Upload, utcnow
+
+    c, t = api_env.client, api_env.tenant()
+    pid = _project(api_env, t)
+    data = make_jpeg(seed=11)
+    up = c.post(
+        f"/projects/{pid}/uploads", json={"name": "aerial/P.jpg", "size": len(data)}, headers=t.headers
+    )
+    up = up.json()
+    target = c.get(f"/projects/{pid}/uploads/{up['id']}/parts/1", headers=t.headers).json()
+    big = data + bytes(len(data))
+    if target["needs_auth"]:  # the API receives the part: it counts the bytes
+        r = c.put(target["url"], content=big, headers=t.headers)
+    else:  # straight to the bucket, under the signed length
+        r = httpx.put(target["url"], content=big, timeout=30)
+    assert r.status_code in (403, 413), r.text
+    with api_env.session() as s:
+        row = s.get(Upload, up["id"])
+        key, storage_id = row.storage_key, row.storage_upload_id
+    etag = api_env.storage.upload_part(key, storage_id, 1, big)  # the storage holds a wrong part anyway
+    r = c.post(
+        f"/projects/{pid}/uploads/{up['id']}/complete",
+        json={"parts": [{"part_number": 1, "etag": etag}]},
+        headers=t.headers,
+    )
+    assert r.status_code == 422 and f"part 1 is {len(big)} bytes, not {len(data)}" in r.text
+    assert not api_env.storage.exists(key)  # nothing assembled
+    etag = _send_part(api_env, t, pid, up, data, 1)
+    r = c.post(
+        f"/projects/{pid}/uploads/{up['id']}/complete",
+        json={"parts": [{"part_number": 1, "etag": etag}]},
+        headers=t.headers,
+    )
+    assert r.status_code == 201, r.text
+
+    # an upload left open past the expiry is aborted, its parts deleted
+    up = c.post(
+        f"/projects/{pid}/uploads", json={"name": "aerial/Q.jpg", "size": len(data)}, headers=t.headers
+    )
+    up = up.json()
+    _send_part(api_env, t, pid, up, data, 1)
+    with api_env.session() as s:
+        row = s.get(Upload, up["id"])
+        key, storage_id = row.storage_key, row.storage_upload_id
+    assert [p.part_number for p in api_env.storage.list_parts(key, storage_id)] == [1]
+    verifier = api_env.app.state.verifier
+    assert up["id"] not in verifier.expire()
+    assert up["id"] in verifier.expire(now=utcnow() + timedelta(hours=25))
+    assert c.get(f"/projects/{pid}/uploads/{up['id']}", headers=t.headers).status_code == 404
+    with pytest.raises(StorageKeyError):  # the multipart upload was aborted: its parts are gone
+        api_env.storage.list_parts(key, storage_id)

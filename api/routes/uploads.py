@@ -218,10 +218,10 @@ def list_parts(
 
 def _presigned_part(upload: Upload, storage: Storage, settings: Any, n: int) -> PartUrl | None:
     """Where to PUT part n straight to the storage (a presigned URL); None when it presigns nothing."""
-    url = storage.presigned_part_url(upload.storage_key, upload.storage_upload_id, n)
+    size = _part_size(upload, n)
+    url = storage.presigned_part_url(upload.storage_key, upload.storage_upload_id, n, size=size)
     if url is None:
         return None
-    size = _part_size(upload, n)
     return PartUrl(
         part_number=n, url=url, expires_in=settings.s3_presign_expiry_s, needs_auth=False, size=size
     )
@@ -312,6 +312,18 @@ def _parts_to_complete(storage: Storage, upload: Upload, body: UploadComplete) -
     return parts
 
 
+def _check_part_sizes(storage: Storage, upload: Upload) -> None:
+    """422 when a part the storage holds is not its planned size (sent around the signed length): the
+    parts are never assembled, nor downloaded, and the client may send that part again."""
+    wrong = [
+        f"part {p.part_number} is {p.size} bytes, not {_part_size(upload, p.part_number)}"
+        for p in _received(storage, upload)
+        if p.size != _part_size(upload, p.part_number)
+    ]
+    if wrong:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "; ".join(wrong[:10]))
+
+
 @router.post(
     "/{upload_id}/complete",
     status_code=status.HTTP_201_CREATED,
@@ -346,6 +358,7 @@ def complete_upload(
             )
         upload.sha256 = body.sha256.lower()
     parts = _parts_to_complete(storage, upload, body)
+    _check_part_sizes(storage, upload)
     if crud.get_image(session, project.id, upload.name) is not None:
         _drop(session, storage, upload)
         raise HTTPException(

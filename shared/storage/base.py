@@ -116,9 +116,15 @@ class Storage(abc.ABC):
 
     @abc.abstractmethod
     def presigned_part_url(
-        self, key: str, upload_id: str, part_number: int, expires_s: int | None = None
+        self,
+        key: str,
+        upload_id: str,
+        part_number: int,
+        expires_s: int | None = None,
+        size: int | None = None,
     ) -> str | None:
-        """A URL the client PUTs one part to (the response ETag header is the part's ETag).
+        """A URL the client PUTs one part to (the response ETag header is the part's ETag); with `size`,
+        the part's length is signed into it (the storage refuses a PUT of any other length).
 
         None when the backend has no such URL (local): the API then receives the part and calls
         upload_part itself."""

@@ -177,7 +177,12 @@ class LocalStorage(Storage):
         return upload_id
 
     def presigned_part_url(
-        self, key: str, upload_id: str, part_number: int, expires_s: int | None = None
+        self,
+        key: str,
+        upload_id: str,
+        part_number: int,
+        expires_s: int | None = None,
+        size: int | None = None,
     ) -> str | None:
         """None: local parts go through upload_part (the API receives them)."""
         self._upload_dir(key, upload_id)

@@ -221,11 +221,18 @@ class S3Storage(Storage):
         return r["UploadId"]
 
     def presigned_part_url(
-        self, key: str, upload_id: str, part_number: int, expires_s: int | None = None
+        self,
+        key: str,
+        upload_id: str,
+        part_number: int,
+        expires_s: int | None = None,
+        size: int | None = None,
     ) -> str | None:
         validate_key(key)
-        params = {"Bucket": self.bucket, "Key": key, "UploadId": upload_id}
+        params: dict = {"Bucket": self.bucket, "Key": key, "UploadId": upload_id}
         params["PartNumber"] = check_part_number(part_number)
+        if size is not None:  # Content-Length becomes a signed header: no other length is accepted
+            params["ContentLength"] = int(size)
         return self._presigner.generate_presigned_url(
             "upload_part", Params=params, ExpiresIn=expires_s or self.presign_expiry_s
         )
