@@ -37,6 +37,12 @@ class ApiSettings(Settings):
         description="A resumable upload still open this many hours after it started is aborted"
         " (its parts deleted from the storage)",
     )
+    max_concurrent_per_key: int = Field(
+        24,
+        ge=1,
+        description="Requests of one API key in flight at once in each API process; one more is answered "
+        "429 before it takes a database connection (a burst from one key cannot starve other tenants)",
+    )
     max_files_per_request: int = Field(1000, ge=1, description="Most files in one upload request")
     max_pos_bytes: int = Field(64 * MB, ge=1, description="Largest POS file accepted, in bytes")
     max_json_bytes: int = Field(1 * MB, ge=1024, description="Largest JSON request body, in bytes")

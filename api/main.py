@@ -23,6 +23,7 @@ from api.errors import install_error_handlers
 from api.gcwatch import GcWatch
 from api.middleware import (
     BodyLimitMiddleware,
+    KeyConcurrencyLimit,
     QueryCredentialsMiddleware,
     RedactCredentials,
     RequestLogMiddleware,
@@ -150,6 +151,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(
         BodyLimitMiddleware, limit_for=body_limits(settings), read_timeout_s=settings.body_read_timeout_s
     )
+    app.add_middleware(KeyConcurrencyLimit, limit=settings.max_concurrent_per_key)
     app.add_middleware(QueryCredentialsMiddleware)
     app.add_middleware(
         SecurityHeadersMiddleware,

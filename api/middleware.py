@@ -5,6 +5,8 @@ server's access log), and the dashboard's security headers."""
 from __future__ import annotations
 
 import asyncio
+import base64
+import hashlib
 import json
 import logging
 import re
@@ -220,9 +222,6 @@ class QueryCredentialsMiddleware:
 
 def inline_script_hashes(html: str) -> list[str]:
     """CSP sources ('sha256-...') of a page's inline <script> blocks (the dashboard's import map)."""
-    import base64
-    import hashlib
-
     blocks = re.findall(r"<script(?![^>]*\bsrc=)[^>]*>(.*?)</script>", html, re.DOTALL)
     return [f"'sha256-{base64.b64encode(hashlib.sha256(b.encode()).digest()).decode()}'" for b in blocks]
 
@@ -263,3 +262,40 @@ class SecurityHeadersMiddleware:
             await send(message)
 
         await self.app(scope, receive, send_with_headers)
+
+
+class KeyConcurrencyLimit:
+    """At most `limit` requests of one API key (its Authorization header) in flight in this process: one
+    more is answered 429 at once, before it takes a database connection or a worker thread, so that a
+    burst from one key cannot hold the pools other tenants need. Requests without the header pass (the
+    API refuses them at once)."""
+
+    def __init__(self, app: ASGIApp, limit: int) -> None:
+        self.app, self.limit = app, int(limit)
+        self._in_flight: dict[bytes, int] = {}
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        header = dict(scope.get("headers") or []).get(b"authorization") if scope["type"] == "http" else None
+        if not header:
+            await self.app(scope, receive, send)
+            return
+        who = hashlib.sha256(header).digest()  # not the key itself
+        if self._in_flight.get(who, 0) >= self.limit:
+            body = json.dumps(
+                {"detail": f"more than {self.limit} requests of this API key at once; retry in 1 s"}
+            ).encode()
+            headers = [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                (b"retry-after", b"1"),
+            ]
+            await send({"type": "http.response.start", "status": 429, "headers": headers})
+            await send({"type": "http.response.body", "body": body})
+            return
+        self._in_flight[who] = self._in_flight.get(who, 0) + 1
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            n = self._in_flight.pop(who) - 1
+            if n:
+                self._in_flight[who] = n
