@@ -165,7 +165,21 @@ def request_body(delivery: WebhookDelivery) -> bytes:
     return json.dumps(envelope, separators=(",", ":"), sort_keys=True).encode()
 
 
-def deliver(
+def claim(delivery: WebhookDelivery) -> bool:
+    """Record an attempt before it is made: one attempt more, and the delivery marked delivered, so that
+    once committed it is never sent again, even when its outcome cannot be written (a database that is
+    locked or away): at most once per event and receiver. False (and marked failed) for an inactive
+    webhook, which is not sent to."""
+    if not delivery.webhook.active:
+        delivery.status, delivery.next_attempt_at = DeliveryStatus.failed, None
+        delivery.last_error = "webhook inactive"
+        return False
+    delivery.attempts += 1
+    delivery.status, delivery.next_attempt_at, delivery.last_error = DeliveryStatus.delivered, None, None
+    return True
+
+
+def send(
     session: Session,
     delivery: WebhookDelivery,
     *,
@@ -178,18 +192,14 @@ def deliver(
     allow: list | None = None,
     resolver: netguard.Resolver = netguard.system_resolver,
 ) -> bool:
-    """Try one delivery now; record the outcome (delivered, retry at next_attempt_at, or failed).
-
-    `allow`: networks a non-public receiver may be in (default: settings.webhook_allow_networks)."""
+    """Make the attempt a claim recorded (claim, committed): POST the event; on failure the delivery is
+    pending again with its retry time (next_attempt_at), or failed after max_attempts; flushed, the
+    caller commits. `allow`: networks a non-public receiver may be in (default:
+    settings.webhook_allow_networks)."""
     now = now or utcnow()
     if allow is None:
         allow = netguard.parse_networks(get_settings().webhook_allow_networks)
     hook = delivery.webhook
-    if not hook.active:
-        delivery.status, delivery.next_attempt_at = DeliveryStatus.failed, None
-        delivery.last_error = "webhook inactive"
-        session.flush()
-        return False
     body = request_body(delivery)
     timestamp = str(int(now.timestamp()))
     headers = {
@@ -200,7 +210,6 @@ def deliver(
         TIMESTAMP_HEADER: timestamp,
         SIGNATURE_HEADER: sign(hook.secret, timestamp, body),
     }
-    delivery.attempts += 1
     error: str | None = None
     try:
         target = netguard.resolve(hook.url, allow, resolver)
@@ -224,12 +233,12 @@ def deliver(
     except httpx.HTTPError as e:
         error = f"{type(e).__name__}: {e}"[:1000]
     if error is None:
-        delivery.status, delivery.next_attempt_at, delivery.last_error = DeliveryStatus.delivered, None, None
-    elif delivery.attempts >= max_attempts:
+        return True
+    if delivery.attempts >= max_attempts:
         delivery.status, delivery.next_attempt_at, delivery.last_error = DeliveryStatus.failed, None, error
         log.warning("webhook delivery %s to %s failed for good: %s", delivery.id, hook.url, error)
     else:
-        delivery.last_error = error
+        delivery.status, delivery.last_error = DeliveryStatus.pending, error
         delivery.next_attempt_at = now + timedelta(
             seconds=backoff_s(delivery.attempts, base_delay_s, max_delay_s)
         )
@@ -241,7 +250,15 @@ def deliver(
             delivery.next_attempt_at.isoformat(),
         )
     session.flush()
-    return error is None
+    return False
+
+
+def deliver(session: Session, delivery: WebhookDelivery, **kw: Any) -> bool:
+    """Try one delivery now: the attempt recorded and committed first (claim), then sent (send), its
+    failure recorded (flushed; the caller commits). kw: those of send."""
+    claimed = claim(delivery)
+    session.commit()
+    return send(session, delivery, **kw) if claimed else False
 
 
 def deliver_due(
@@ -253,8 +270,9 @@ def deliver_due(
     **kw: Any,
 ) -> int:
     """Try every pending delivery whose time has come (at most limit, oldest first); return how many
-    succeeded. Rows are locked with SKIP LOCKED on PostgreSQL, so several beats never send one twice;
-    the caller commits. kw: max_attempts, base_delay_s, max_delay_s, timeout_s (see deliver)."""
+    succeeded. Rows are taken with SKIP LOCKED on PostgreSQL and every attempt is recorded (committed)
+    before any is sent, so several beats never send one twice and an outcome that cannot be written does
+    not send it again; the caller commits the failures. kw: those of send."""
     now = now or utcnow()
     stmt = (
         sa.select(WebhookDelivery)
@@ -269,10 +287,12 @@ def deliver_due(
     due = list(session.scalars(stmt))
     if not due:
         return 0
+    claimed = [d for d in due if claim(d)]
+    session.commit()  # every attempt recorded before any is made (and the rows' locks released)
     own = client is None
     http = client or httpx.Client(follow_redirects=False)
     try:
-        return sum(deliver(session, d, client=http, now=now, **kw) for d in due)
+        return sum(send(session, d, client=http, now=now, **kw) for d in claimed)
     finally:
         if own:
             http.close()

@@ -346,3 +346,28 @@ def test_a_host_name_resolving_to_an_internal_address_is_refused_at_registration
             assert r.status_code == 422 and why in r.text, (url, r.text)
         r = c.post("/webhooks", json={"url": "https://not-yet.example.com/h"}, headers=headers)
         assert r.status_code == 201
+
+
+def test_a_delivery_whose_outcome_cannot_be_written_is_not_sent_again(api_env) -> None:
+    """The receiver gets the event; writing the outcome then fails (the transaction is lost, as when an
+    embedded database stays locked): the next beats send nothing more. Every attempt is recorded before
+    it is made: at most one POST per event and receiver."""
+    receiver = Receiver([])
+    try:
+        c, t = api_env.client, api_env.tenant()
+        c.post("/webhooks", json={"url": receiver.url, "events": ["job.succeeded"]}, headers=t.headers)
+        job_id = _finished_job(api_env, t, JobStatus.succeeded)
+        t0 = utcnow()
+        with api_env.session() as s:
+            assert len(enqueue_job_event(s, crud.get_job(s, job_id), now=t0)) == 1
+            s.commit()
+        with api_env.session() as s:
+            assert deliver_due(s, now=t0) == 1
+            s.rollback()  # the outcome's transaction is lost
+        for later in (60, 3600):
+            with api_env.session() as s:
+                assert deliver_due(s, now=t0 + timedelta(seconds=later)) == 0
+                s.commit()
+        assert len(receiver.requests) == 1
+    finally:
+        receiver.close()
