@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import re
 import shutil
 import time
 from collections.abc import Iterator
@@ -124,15 +125,36 @@ class SfmError(RuntimeError):
 
 
 # -- helpers -----------------------------------------------------------------------------------
+_GLOG_PREFIX = re.compile(r"^[IWEF]\d{8} [\d:.]+ +\d+ [^\]]*\] ")
+
+
 @contextlib.contextmanager
-def colmap_log_level(level: int) -> Iterator[None]:
-    """Temporarily set pycolmap's glog minloglevel."""
-    old = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = level
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = old
+def colmap_log_level(level: int, counts: dict[str, int] | None = None) -> Iterator[dict[str, int]]:
+    """While pycolmap runs: glog's minloglevel `level`, and its warnings and errors written to a file
+    instead of stderr (a bundle adjustment can print the same solver warning thousands of times). At
+    the end each distinct message is logged once with its count; `counts` (message -> count, numbers
+    written #), the dict yielded, holds them for a report."""
+    import tempfile
+
+    counts = {} if counts is None else counts
+    log = pycolmap.logging
+    saved = (log.minloglevel, log.alsologtostderr, log.stderrthreshold)
+    with tempfile.TemporaryDirectory(prefix="midview-glog-") as tmp:
+        log.minloglevel, log.alsologtostderr, log.stderrthreshold = level, False, 3  # FATAL only
+        log.set_log_destination(log.WARNING, f"{tmp}/warnings.")
+        try:
+            yield counts
+        finally:
+            log.set_log_destination(log.WARNING, "")
+            log.minloglevel, log.alsologtostderr, log.stderrthreshold = saved
+            files = Path(tmp).glob("warnings.*")
+            lines = {ln for f in files for ln in f.read_text(errors="replace").splitlines()}
+            for line in sorted(lines):  # glog may write a line to its file twice: each line counts once
+                if _GLOG_PREFIX.match(line):
+                    message = re.sub(r"\d+", "#", _GLOG_PREFIX.sub("", line))[:300]
+                    counts[message] = counts.get(message, 0) + 1
+            for message, n in sorted(counts.items(), key=lambda kv: -kv[1]):
+                logger.warning("pycolmap: %d x %s", n, message)
 
 
 def _num_threads() -> int:
@@ -765,7 +787,7 @@ def main(
         inp = load_inputs(conf, image_dir, out_dir, pos_records, cameras, image_set)
         timings["images"] = time.perf_counter() - t0
     db_path = out_dir / "database.db"
-    with colmap_log_level(conf["colmap_log_level"]):
+    with colmap_log_level(conf["colmap_log_level"]) as warnings:
         dbstats, pair_check, extra = features_and_matches(conf, inp, db_path, out_dir, timings)
         with stage("sfm:mapping", logger):
             models, best = map_images(conf, inp, db_path, out_dir, dbstats, timings)
@@ -775,7 +797,7 @@ def main(
         timings["georef"] = time.perf_counter() - t0
     with stage("sfm:report", logger):
         timings["total"] = time.perf_counter() - t_all
-        extra = {"database": dbstats, "pair_check": pair_check, **extra}
+        extra = {"database": dbstats, "pair_check": pair_check, **extra, "colmap_warnings": warnings}
         export_and_report(conf, inp, models, best, geo, gsum, db_path, out_dir, timings, extra)
     if gsum["status"] == "failed":
         raise georef_mod.GeorefError(

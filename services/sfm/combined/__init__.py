@@ -44,6 +44,7 @@ import pycolmap
 from services.colmap_model import Camera, read_cameras_json
 from services.conf import merge_conf
 from services.pos import DEFAULT_STD_XY
+from services.sfm.aerial import colmap_log_level
 from services.sfm.combined.confs import default_conf
 from services.sfm.combined.database import (
     CombinedDatabase,
@@ -155,7 +156,7 @@ def main(
             aerial, cdb.path, cdb.ids, cdb.offsets, cdb.ag, pnp, cdb.pair_sizes, conf, out_dir / "input"
         )
 
-    with stage("combined:mapping", logger):
+    with stage("combined:mapping", logger), colmap_log_level(conf["colmap_log_level"]) as warnings:
         t0 = time.perf_counter()
         n_ids = len(cdb.ids)
         step = lambda f, m: prog(0.6 + 0.35 * f, m)  # noqa: E731
@@ -175,6 +176,7 @@ def main(
         cdb.pair_sizes, min_pair, refined, cdb.ground_pairs,
     )  # fmt: skip
     report["ground_pairs"] = cdb.ground_pairs
+    report["colmap_warnings"] = warnings  # the solver's warnings, counted (not printed line by line)
     if conf["gis"]:
         with stage("combined:gis", logger):
             report["gis"] = write_gis(rec, frame, pos, report, aerial_dir, out_dir / "gis")

@@ -236,8 +236,6 @@ def run_mapper(
 ) -> pycolmap.Reconstruction:
     """pycolmap's incremental mapper continuing from the input model (out_dir/input); its largest model,
     or the input model when it made none. prog(fraction, message) after each registered image."""
-    from services.sfm.aerial import colmap_log_level
-
     models_dir = out_dir / "models"
     if models_dir.exists():
         shutil.rmtree(models_dir)
@@ -248,15 +246,14 @@ def run_mapper(
         state["n"] += 1
         prog(min(state["n"] / max(n_total, 1), 1.0), f"{state['n']} images registered")
 
-    with colmap_log_level(conf["colmap_log_level"]):
-        models = pycolmap.incremental_mapping(
-            db_path,
-            image_dir,
-            models_dir,
-            mapper_options(conf["mapping"]),
-            input_path=out_dir / "input",
-            next_image_callback=registered,
-        )
+    models = pycolmap.incremental_mapping(  # the caller holds glog's warnings (colmap_log_level)
+        db_path,
+        image_dir,
+        models_dir,
+        mapper_options(conf["mapping"]),
+        input_path=out_dir / "input",
+        next_image_callback=registered,
+    )
     if models:
         return max(models.values(), key=lambda r: r.num_reg_images())
     logger.warning("the mapper returned no model: keeping the seeded input model")
