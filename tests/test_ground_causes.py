@@ -23,10 +23,10 @@ def test_view_cover_counts_the_views_a_ground_image_is_a_candidate_of():
 
 def test_each_image_left_out_gets_the_first_cause_that_holds():
     reg = {"ground/R.jpg"}
-    nothing = {"views": 2, "view_aerial_fraction": 0.5, "num_correspondences": 0}
+    nothing = {"views": 2, "view_aerial_fraction": 0.5, "num_correspondences": 80, "num_inliers": 3}
     assert cause_of("g", {"dropped": True}, nothing, [], reg) == "ambiguous"
     assert cause_of("g", {}, {**nothing, "accepted": True}, [], reg) == "ambiguous"
-    assert cause_of("g", {}, {**nothing, "num_correspondences": 9}, [], reg) == "ties-without-pose"
+    assert cause_of("g", {}, {**nothing, "num_inliers": 40}, [], reg) == "ties-without-pose"
     assert cause_of("g", {}, nothing, ["ground/R.jpg"], reg) == "ties-without-pose"
     assert cause_of("g", {}, nothing, ["ground/U.jpg"], reg) == "chained-to-unregistered"
     assert cause_of("g", {}, {**nothing, "view_aerial_fraction": 0.03}, [], reg) == "no-aerial-view"

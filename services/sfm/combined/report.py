@@ -27,16 +27,23 @@ CAUSES = {
     "ambiguous": "a pose was found, but it disagrees with its POS or is ill-determined, so it was dropped",
 }
 MIN_VIEW_AERIAL_FRACTION = 0.1  # a view coloured from the aerial images over less than this shows them little
-MIN_TIES = 4  # fewer aerial ties than this (the fewest PnP can place a camera with) are no tie
+
+
+def _min_ties() -> int:
+    """Aerial ties that count: the PnP inliers the reducer takes for a consensus (fewer are chance)."""
+    from services.reduce import default_conf
+
+    return int(default_conf["pnp"]["min_inliers"])
 
 
 def cause_of(g: str, entry: dict, pnp: dict, partners: list[str], registered: set[str]) -> str:
     """The named cause (CAUSES) of a ground image that is not registered: `entry` its report entry,
-    `pnp` its record of the reducer's ground_poses.json ({} when none), `partners` the ground images of
-    its verified ground-ground pairs, `registered` the registered images."""
+    `pnp` its record of the reducer's ground_poses.json ({} when none; its ties: the PnP's inliers),
+    `partners` the ground images of its verified ground-ground pairs, `registered` the registered
+    images."""
     if entry.get("dropped") or pnp.get("accepted"):
         return "ambiguous"
-    if int(pnp.get("num_correspondences") or 0) >= MIN_TIES or any(p in registered for p in partners):
+    if int(pnp.get("num_inliers") or 0) >= _min_ties() or any(p in registered for p in partners):
         return "ties-without-pose"
     if partners:
         return "chained-to-unregistered"
