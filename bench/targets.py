@@ -32,7 +32,7 @@ from services.colmap_model import Pose  # noqa: E402
 from services.conf import merge_conf, parse_overrides  # noqa: E402
 from services.geometry import optical_axis  # noqa: E402
 from services.views import GroundTruthRenderer, rendering  # noqa: E402
-from services.views.confs import _BASE  # noqa: E402
+from services.views.confs import BASE  # noqa: E402
 from services.views.ground_aware import ground_target  # noqa: E402
 from services.views.rays import depth_at_center, probe_camera  # noqa: E402
 from services.views.scene import Scene, load_scene  # noqa: E402
@@ -93,7 +93,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
     job = pipeline.Job.load(args.job)
-    base = merge_conf(_BASE, job.viewpoint_conf())
+    base = merge_conf(BASE, job.viewpoint_conf())
     variants = {"job": base}
     for text in args.variant:
         name, sets = parse_variant(text)

@@ -38,7 +38,7 @@ def _database(path, true: dict[str, Pose], seed: int = 0) -> dict[str, np.ndarra
     P = np.stack([rng.uniform(-10, 32, n), 10.0 + rng.uniform(0, 3, n), rng.uniform(0, 12, n)], 1)
     db = pycolmap.Database.open(str(path))
     names = sorted(true)
-    ids = combined_sfm._write_ground(db, CAM, names)
+    ids = combined_sfm.write_ground(db, CAM, names)
     seen, kps = {}, {}
     for name in names:
         uv, z = true[name].project(CAM.K, P)
@@ -53,7 +53,7 @@ def _database(path, true: dict[str, Pose], seed: int = 0) -> dict[str, np.ndarra
             R = true[b].R @ true[a].R.T
             t = true[b].t - R @ true[a].t
             rel = {"R": R.tolist(), "t": (t / np.linalg.norm(t)).tolist()}
-            combined_sfm._write_pair(db, ids[a], ids[b], m, None, True, rel)
+            combined_sfm.write_pair(db, ids[a], ids[b], m, None, True, rel)
     db.close()
     return kps
 
@@ -219,11 +219,11 @@ def test_a_run_of_ground_images_placed_by_a_patch_is_ill_determined():
 
 
 def test_transferred_tracks_are_seeded_for_ground_images_not_registered_yet():
-    """services.sfm.combined._seed_tracks: a transferred track is triangulated from its registered
+    """services.sfm.combined.seed_tracks: a transferred track is triangulated from its registered
     observations; the keypoints of a ground image the reducer did not localize link its aerial
     observations but stay out of the track (the mapper then sees that image's 2D-3D correspondences and
     can register it); once that image is registered its keypoints join the track."""
-    from services.sfm.combined import _seed_tracks
+    from services.sfm.combined import seed_tracks
 
     rng = np.random.default_rng(2)
     aerial_cam = Camera("PINHOLE", 1600, 1200, [1300.0, 1300.0, 800.0, 600.0])
@@ -256,14 +256,14 @@ def test_transferred_tracks_are_seeded_for_ground_images_not_registered_yet():
 
     aerial = {"aerial/A0000.jpg", "aerial/A0001.jpg"}
     rec = model(aerial)
-    assert _seed_tracks(rec, ids, offsets, ag, kps, aerial) == 30
+    assert seed_tracks(rec, ids, offsets, ag, kps, aerial) == 30
     for p in rec.points3D.values():
         els = sorted((e.image_id, e.point2D_idx) for e in p.track.elements)
         k = els[0][1] - 7
         assert els == [(1, k + 7), (2, k + 7)]  # the two aerial keypoints, at the offset
         assert np.allclose(p.xyz, X[k], atol=1e-6)
     rec = model(aerial | {"ground/G0000.jpg"})
-    assert _seed_tracks(rec, ids, offsets, ag, kps, aerial | {"ground/G0000.jpg"}) == 30
+    assert seed_tracks(rec, ids, offsets, ag, kps, aerial | {"ground/G0000.jpg"}) == 30
     assert all(p.track.length() == 3 for p in rec.points3D.values())
 
 
@@ -280,8 +280,8 @@ def test_the_input_model_holds_the_pnp_poses_its_seeding_mode_takes(tmp_path):
     }
     db = pycolmap.Database.open(str(tmp_path / "db.db"))
     ids = {
-        **combined_sfm._write_ground(db, aerial_cam, ["aerial/A0000.jpg"]),
-        **combined_sfm._write_ground(db, CAM, sorted(n for n in true if n.startswith("ground/"))),
+        **combined_sfm.write_ground(db, aerial_cam, ["aerial/A0000.jpg"]),
+        **combined_sfm.write_ground(db, CAM, sorted(n for n in true if n.startswith("ground/"))),
     }
     for i in ids.values():
         db.write_keypoints(i, np.random.default_rng(i).uniform(0, 700, (50, 2)).astype(np.float32))

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.reduce.observations import _take
+from services.reduce.observations import take
 from services.reduce.points import Candidates
 
 Pairs = dict[tuple[str, str], dict[str, np.ndarray]]
@@ -46,7 +46,7 @@ def merge_candidates(cands: Candidates, view_names: list[str]) -> Pairs:
             "view": np.array([r["view"] for r in rows], np.int64),
             "X": np.array([r["X"] for r in rows], float).reshape(-1, 3),
         }
-        merged[key] = _take(c, merge_one_to_one(c, view_names))
+        merged[key] = take(c, merge_one_to_one(c, view_names))
     return merged
 
 

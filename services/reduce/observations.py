@@ -98,7 +98,7 @@ def _cat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def _take(d: dict[str, np.ndarray], sel) -> dict[str, np.ndarray]:
+def take(d: dict[str, np.ndarray], sel) -> dict[str, np.ndarray]:
     return {k: v[sel] for k, v in d.items()}
 
 

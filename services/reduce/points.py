@@ -10,7 +10,7 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose
 from services.conf import merge_conf
-from services.reduce.observations import ViewData, _take, image_set, link_identity
+from services.reduce.observations import ViewData, image_set, link_identity, take
 from services.reduce.tracks import complete_tracks
 
 Candidates = dict[tuple[str, str], list[dict[str, Any]]]
@@ -265,7 +265,7 @@ def _ground_links(
         return link_points(views, pts, pts_obs, og, conf)
     big = np.int64(1) << 32
     pkey = pts["view"] * big + pts["ir"]
-    og = _take(og, np.isin(og["view"] * big + og["ir"], pkey))
+    og = take(og, np.isin(og["view"] * big + og["ir"], pkey))
     same = np.isin(pkey, og["view"] * big + og["ir"])
     sub = {k: v[same] for k, v in pts.items()}
     sub_obs = [pts_obs[k] for k in np.flatnonzero(same)]

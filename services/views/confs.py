@@ -6,7 +6,7 @@ from typing import Any
 
 from services.conf import merge_conf
 
-_BASE: dict[str, Any] = {
+BASE: dict[str, Any] = {
     "planner": "both",  # paper | ground-aware | both (measured best: bench/method.py)
     "views_per_ground_image": 4,
     "target": {
@@ -110,7 +110,7 @@ _BASE: dict[str, Any] = {
 
 
 confs: dict[str, dict[str, Any]] = {
-    "paper": merge_conf(_BASE, {"planner": "paper"}),
-    "ground-aware": merge_conf(_BASE, {"planner": "ground-aware"}),
-    "both": merge_conf(_BASE, {"planner": "both"}),
+    "paper": merge_conf(BASE, {"planner": "paper"}),
+    "ground-aware": merge_conf(BASE, {"planner": "ground-aware"}),
+    "both": merge_conf(BASE, {"planner": "both"}),
 }

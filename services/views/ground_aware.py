@@ -10,9 +10,9 @@ import numpy as np
 
 from services.conf import merge_conf
 from services.geometry import look_at, optical_axis, pitch_deg, scaled_camera
-from services.views.rays import _horizontal, depth_at, unproject
+from services.views.rays import depth_at, horizontal, unproject
 from services.views.scene import Scene
-from services.views.specs import ViewSpec, _stem, aerial_candidates, assign_candidates
+from services.views.specs import ViewSpec, aerial_candidates, assign_candidates, stem
 
 logger = logging.getLogger("midview.viewpoints")
 
@@ -99,9 +99,9 @@ def _placements(
     min_cov = float(gc["min_covisible"] or 0.0)
     cam_g, pose_g = scene.ground_cameras[g], scene.ground_poses[g]
     C_g = pose_g.center
-    back = _horizontal(C_g - T)
+    back = horizontal(C_g - T)
     if back is None:
-        back = _horizontal(-optical_axis(pose_g))
+        back = horizontal(-optical_axis(pose_g))
     if back is None:
         back = np.array([0.0, -1.0, 0.0])
     cam = scaled_camera(cam_g, gc["max_width"], gc["fov_scale"])
@@ -134,7 +134,7 @@ def _placements(
         pose = look_at(C, T)
         cov = scene.covisible_fraction(surface, cam, pose, gc["covisibility_width"])
         view = ViewSpec(
-            f"G-{_stem(g)}-{placement}{int(round(height)):02d}",
+            f"G-{stem(g)}-{placement}{int(round(height)):02d}",
             "ground-aware",
             g,
             cam,

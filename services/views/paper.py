@@ -10,9 +10,9 @@ import numpy as np
 
 from services.colmap_model import Camera
 from services.geometry import angle_deg, pitch_deg, scaled_camera
-from services.views.rays import _horizontal, paper_viewpoint
+from services.views.rays import horizontal, paper_viewpoint
 from services.views.scene import Scene
-from services.views.specs import ViewSpec, _sees, _stem, assign_candidates
+from services.views.specs import ViewSpec, assign_candidates, sees, stem
 
 logger = logging.getLogger("midview.viewpoints")
 
@@ -33,7 +33,7 @@ def plan_paper(scene: Scene, conf: dict) -> list[ViewSpec]:
         for i, fraction in enumerate(fractions):
             new_pose, beta = paper_viewpoint(pose, T, fraction)
             v = ViewSpec(
-                f"P-{_stem(a)}" + ("" if i == 0 else f"-h{round(100 * fraction):02d}"),
+                f"P-{stem(a)}" + ("" if i == 0 else f"-h{round(100 * fraction):02d}"),
                 "paper",
                 a,
                 scaled_camera(cam, pc["max_width"]),
@@ -53,7 +53,7 @@ def plan_paper(scene: Scene, conf: dict) -> list[ViewSpec]:
 def _heading_and_distance(view: ViewSpec, ground_center: np.ndarray) -> float:
     """The angle (degrees) between the horizontal directions from the view's target to the view and to
     the ground camera, plus half the ground camera's distance to the target (m)."""
-    hv, hg = _horizontal(view.center - view.target), _horizontal(ground_center - view.target)
+    hv, hg = horizontal(view.center - view.target), horizontal(ground_center - view.target)
     heading = angle_deg(hv, hg) if hv is not None and hg is not None else 90.0
     return heading + 0.5 * float(np.linalg.norm(ground_center - view.target))
 
@@ -66,7 +66,7 @@ def _relevance(view: ViewSpec, g: str, scene: Scene, conf: dict) -> float | None
     dist = float(np.linalg.norm(pose.center - view.target))
     if dist > cc["max_ground_distance_m"]:
         return None
-    if not _sees(scene.ground_cameras[g], pose, view.target, cc["ground_margin"]):
+    if not sees(scene.ground_cameras[g], pose, view.target, cc["ground_margin"]):
         return None
     return _heading_and_distance(view, pose.center)
 

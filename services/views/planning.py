@@ -11,11 +11,11 @@ from services.conf import merge_conf
 from services.geometry import angle_deg, pitch_deg
 from services.pos import LocalFrame, PosRecord
 from services.sfm import read_georef_frame
-from services.views.confs import _BASE, confs
+from services.views.confs import BASE, confs
 from services.views.ground_aware import plan_ground_aware
 from services.views.paper import plan_paper, select_paper
 from services.views.scene import DepthFn, Scene, load_scene
-from services.views.specs import ViewSpec, _sees, summary, write_views
+from services.views.specs import ViewSpec, sees, summary, write_views
 from shared.logging import stage
 
 logger = logging.getLogger("midview.viewpoints")
@@ -37,7 +37,7 @@ def cover_aerial(views: list[ViewSpec], scene: Scene, conf: dict) -> int:
             continue
         best = None
         for v in views:
-            if not _sees(cam, pose, v.target, cc["margin"]):
+            if not sees(cam, pose, v.target, cc["margin"]):
                 continue
             ang = angle_deg(v.center - v.target, pose.center - v.target)
             if ang <= cc["max_angle_deg"] and (best is None or (ang, v.name) < best[:2]):
@@ -86,7 +86,7 @@ def main(
 ) -> Path:
     """Plan the intermediate views and write them to `out_path` (views.json). Raises NoViews, writing
     nothing, when no view can be planned."""
-    conf = merge_conf(_BASE, conf)
+    conf = merge_conf(BASE, conf)
     with stage(f"viewpoints:{conf['planner']}", logger):
         scene = load_scene(sparse, pos, cameras, georef, depth_fn, conf)
         views = plan(scene, conf)

@@ -108,7 +108,7 @@ def unproject(K: np.ndarray, pose: Pose, u: np.ndarray, v: np.ndarray, z: np.nda
     return (x_cam - pose.t[None]) @ pose.R  # R^T (x - t)
 
 
-def _horizontal(v: np.ndarray) -> np.ndarray | None:
+def horizontal(v: np.ndarray) -> np.ndarray | None:
     h = np.array([v[0], v[1], 0.0])
     n = np.linalg.norm(h)
     return h / n if n > 1e-6 else None

@@ -16,7 +16,7 @@ from services.conf import merge_conf
 from services.geometry import look_at, optical_axis, pos_in_frame
 from services.pos import LocalFrame, PosRecord, read_pos
 from services.sfm import read_georef_frame
-from services.views.confs import _BASE
+from services.views.confs import BASE
 from services.views.rays import (
     carve_ray,
     depth_at_center,
@@ -206,7 +206,7 @@ def load_scene(
     """The planners' inputs: the aerial model, the ground POS in its frame, the ground camera."""
     import pycolmap
 
-    conf = merge_conf(_BASE, conf or {})
+    conf = merge_conf(BASE, conf or {})
     cams_a, poses_a = read_model(sparse)
     cams_a = {n: c for n, c in cams_a.items() if n.split("/", 1)[0] == "aerial"}
     poses_a = {n: p for n, p in poses_a.items() if n in cams_a}

@@ -65,7 +65,7 @@ class ViewSpec:
         )
 
 
-def _sees(camera: Camera, pose: Pose, X: np.ndarray, margin: float) -> bool:
+def sees(camera: Camera, pose: Pose, X: np.ndarray, margin: float) -> bool:
     uv, z = pose.project(camera.K, np.asarray(X, float)[None])
     mx, my = margin * camera.width, margin * camera.height
     return bool(z[0] > 0 and -mx <= uv[0, 0] <= camera.width + mx and -my <= uv[0, 1] <= camera.height + my)
@@ -80,7 +80,7 @@ def aerial_candidates(view: ViewSpec, scene: Scene, conf: dict) -> list[tuple[fl
     for a, pose in scene.aerial_poses.items():
         if cc["skip_nadir"] and not nadir_view and pitch_deg(pose) < cc["nadir_pitch_deg"]:
             continue
-        if not _sees(scene.aerial_cameras[a], pose, view.target, cc["margin"]):
+        if not sees(scene.aerial_cameras[a], pose, view.target, cc["margin"]):
             continue
         ang = angle_deg(u_v, pose.center - view.target)
         if ang <= cc["max_angle_deg"]:
@@ -96,7 +96,7 @@ def ground_candidates(view: ViewSpec, scene: Scene, conf: dict) -> list[tuple[fl
     for g, pose in scene.ground_poses.items():
         if np.linalg.norm(pose.center - view.target) > cc["max_ground_distance_m"]:
             continue
-        if not _sees(scene.ground_cameras[g], pose, view.target, cc["ground_margin"]):
+        if not sees(scene.ground_cameras[g], pose, view.target, cc["ground_margin"]):
             continue
         ang = angle_deg(u_v, pose.center - view.target)
         if ang <= cc["max_angle_deg"] + 15.0:  # ground cameras are far below any view
@@ -118,7 +118,7 @@ def assign_candidates(view: ViewSpec, scene: Scene, conf: dict) -> ViewSpec:
     return view
 
 
-def _stem(name: str) -> str:
+def stem(name: str) -> str:
     return Path(name).stem
 
 

@@ -48,18 +48,18 @@ from services.sfm.aerial import colmap_log_level
 from services.sfm.combined.confs import default_conf
 from services.sfm.combined.database import (
     CombinedDatabase,
-    _write_ground,
-    _write_pair,
     build_database,
     ground_pairs,
     verify_ground_pair,
+    write_ground,
+    write_pair,
 )
 from services.sfm.combined.mapping import add_pnp_images, drop_ill_determined, run_mapper, settle_ground
 from services.sfm.combined.model import (
-    _seed_tracks,
     build_input_model,
     registered_ground,
     rests_on_trusted_depth,
+    seed_tracks,
 )
 from services.sfm.combined.report import build_report, write_gis
 from shared.logging import stage
@@ -70,9 +70,9 @@ confs = {"default": default_conf}
 
 __all__ = [
     "CombinedDatabase",
-    "_seed_tracks",
-    "_write_ground",
-    "_write_pair",
+    "seed_tracks",
+    "write_ground",
+    "write_pair",
     "add_pnp_images",
     "build_input_model",
     "build_report",

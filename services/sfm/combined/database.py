@@ -48,7 +48,7 @@ def _pad_like(kp: np.ndarray, cols: int) -> np.ndarray:
     return np.concatenate([kp, extra], 1)[:, :cols]
 
 
-def _write_ground(db: pycolmap.Database, camera: Camera, names: list[str]) -> dict[str, int]:
+def write_ground(db: pycolmap.Database, camera: Camera, names: list[str]) -> dict[str, int]:
     cam = camera.to_pycolmap(camera_id=0)
     cam.has_prior_focal_length = True
     cam.camera_id = db.write_camera(cam)
@@ -66,7 +66,7 @@ def _write_ground(db: pycolmap.Database, camera: Camera, names: list[str]) -> di
     return ids
 
 
-def _write_pair(
+def write_pair(
     db: pycolmap.Database,
     id0: int,
     id1: int,
@@ -251,7 +251,7 @@ def _write_ground_images(
     prior_std: dict[str, PosStd],
 ) -> dict[str, int]:
     """The ground camera, images, keypoints and POS pose priors; their ids."""
-    ids = _write_ground(db, camera, sorted(g_feats))
+    ids = write_ground(db, camera, sorted(g_feats))
     for n, f in sorted(g_feats.items()):
         db.write_keypoints(ids[n], np.ascontiguousarray(f["keypoints"], np.float32))
         if n in priors:
@@ -281,7 +281,7 @@ def _write_aerial_ground(
         if len(g_feats[g]["keypoints"]) != len(t_kps[g]):
             raise ValueError(f"{g}: the feature cache and the transfer disagree on its keypoints")
         mm = np.stack([m[:, 0] + cdb.offsets[a], m[:, 1]], 1)
-        _write_pair(db, cdb.ids[a], cdb.ids[g], mm, cdb.pair_sizes)
+        write_pair(db, cdb.ids[a], cdb.ids[g], mm, cdb.pair_sizes)
         cdb.ag.append((a, g, m))
 
 
@@ -309,7 +309,7 @@ def _write_ground_ground(
         )
         cdb.ground_pairs[f"{g0} {g1}"] = rec
         if len(inl):
-            _write_pair(db, cdb.ids[g0], cdb.ids[g1], inl, cdb.pair_sizes, True, rec.get("cam2_from_cam1"))
+            write_pair(db, cdb.ids[g0], cdb.ids[g1], inl, cdb.pair_sizes, True, rec.get("cam2_from_cam1"))
             n += 1
         prog((i + 1) / max(len(gp), 1), f"ground pair {i + 1}/{len(gp)}")
     return n

@@ -15,11 +15,11 @@ from services.colmap_model import Pose
 from services.geometry import pose_of_image
 from services.sfm.combined.database import CombinedDatabase
 from services.sfm.combined.model import (
-    _max_angle_deg,
-    _projection,
-    _triangulate,
+    max_angle_deg,
     pose_of_record,
+    projection,
     registered_ground,
+    triangulate,
 )
 from services.sfm.combined.refine import refine_ground
 
@@ -156,7 +156,7 @@ def _observe_points(
         if ids.get(g) not in all_kps or a not in aerial_p3d:
             continue
         gid = ids[g]
-        P = _projection(rec.images[gid])
+        P = projection(rec.images[gid])
         for ia, ig in m:
             akp = int(ia) + offsets[a]
             if (gid, -int(ig) - 1) in used:
@@ -193,8 +193,8 @@ def _add_new_points(
                 obs.append((gid, ig))
         if len(obs) < 2:
             continue
-        X = _triangulate(rec, obs, all_kps, conf["add_max_px"])
-        if X is None or _max_angle_deg(rec, X, [i for i, _ in obs]) < conf["add_min_angle_deg"]:
+        X = triangulate(rec, obs, all_kps, conf["add_max_px"])
+        if X is None or max_angle_deg(rec, X, [i for i, _ in obs]) < conf["add_min_angle_deg"]:
             continue
         rec.add_point3D(
             X, pycolmap.Track([pycolmap.TrackElement(i, k) for i, k in obs]), np.full(3, 128, np.uint8)

@@ -110,7 +110,7 @@ def build_input_model(
         rec.add_image_with_trivial_frame(im)
     for _, p in sorted(aerial.points3D.items()):
         rec.add_point3D(p.xyz, pycolmap.Track(p.track.elements), p.color)
-    n_seed = _seed_tracks(rec, ids, offsets, ag, kps, registered) if conf["seed_points"] else 0
+    n_seed = seed_tracks(rec, ids, offsets, ag, kps, registered) if conf["seed_points"] else 0
     out.mkdir(parents=True, exist_ok=True)
     rec.write(str(out))
     logger.info(
@@ -135,7 +135,7 @@ def registered_ground(rec: pycolmap.Reconstruction) -> set[str]:
     return {im.name for im in rec.images.values() if im.has_pose and im.name.startswith("ground/")}
 
 
-def _seed_tracks(
+def seed_tracks(
     rec: pycolmap.Reconstruction,
     ids: dict[str, int],
     offsets: dict[str, int],
@@ -176,7 +176,7 @@ def _seed_tracks(
         obs = [(i, k) for i, k in members if i in reg_ids]
         if len(obs) < 2 or not any(rec.images[i].name.startswith("aerial/") for i, _ in obs):
             continue
-        X = _triangulate(rec, obs, kps)
+        X = triangulate(rec, obs, kps)
         if X is None:
             continue
         track = pycolmap.Track([pycolmap.TrackElement(i, k) for i, k in obs])
@@ -185,7 +185,7 @@ def _seed_tracks(
     return n
 
 
-def _triangulate(
+def triangulate(
     rec: pycolmap.Reconstruction,
     obs: list[tuple[int, int]],
     kps: dict[int, np.ndarray],
@@ -196,7 +196,7 @@ def _triangulate(
     Ps = []
     for iid, k in obs:
         img = rec.images[iid]
-        P = _projection(img)
+        P = projection(img)
         x, y = kps[iid][k]
         A.append(x * P[2] - P[0])
         A.append(y * P[2] - P[1])
@@ -213,12 +213,12 @@ def _triangulate(
     return X
 
 
-def _projection(image: pycolmap.Image) -> np.ndarray:
+def projection(image: pycolmap.Image) -> np.ndarray:
     """The 3x4 projection matrix K [R | t] of a posed image (pinhole part of its camera)."""
     return np.asarray(image.camera.calibration_matrix()) @ np.asarray(image.cam_from_world().matrix())
 
 
-def _max_angle_deg(rec: pycolmap.Reconstruction, X: np.ndarray, image_ids: list[int]) -> float:
+def max_angle_deg(rec: pycolmap.Reconstruction, X: np.ndarray, image_ids: list[int]) -> float:
     """The largest angle (degrees) at X between the rays of the images `image_ids`."""
     d = np.array([np.asarray(rec.images[i].projection_center()) - X for i in image_ids])
     d /= np.linalg.norm(d, axis=1, keepdims=True)
