@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, field_validator
 
@@ -42,6 +42,13 @@ class ApiSettings(Settings):
         ge=1,
         description="Requests of one API key in flight at once in each API process; one more is answered "
         "429 before it takes a database connection (a burst from one key cannot starve other tenants)",
+    )
+    max_header_bytes: int = Field(
+        64 * 1024,
+        ge=8 * 1024,
+        le=16 * MB,
+        description="Largest request line and headers together, in bytes; more is answered 400 and the "
+        "connection closed before anything is parsed further (uvicorn's h11 parser, server_options)",
     )
     max_files_per_request: int = Field(1000, ge=1, description="Most files in one upload request")
     max_pos_bytes: int = Field(64 * MB, ge=1, description="Largest POS file accepted, in bytes")
@@ -112,3 +119,14 @@ class ApiSettings(Settings):
                 f"bootstrap_api_key must start with {API_KEY_PREFIX!r} and have >= 20 characters"
             )
         return value or None
+
+
+def server_options(settings: ApiSettings) -> dict[str, Any]:
+    """uvicorn's options for the API (uvicorn.run(app, **server_options(s)); the Dockerfile passes the
+    same as flags): the h11 parser, which bounds the request head (httptools does not bound it)."""
+    return {"http": "h11", "h11_max_incomplete_event_size": settings.max_header_bytes}
+
+
+def server_flags(settings: ApiSettings) -> list[str]:
+    """server_options as `uvicorn` command-line flags."""
+    return ["--http", "h11", "--h11-max-incomplete-event-size", str(settings.max_header_bytes)]

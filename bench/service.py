@@ -231,7 +231,9 @@ class Stack:
             "MIDVIEW_LOG_LEVEL": "INFO",
             "NUMBA_NUM_THREADS": "1",
         }
-        args = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-Q", "gpu,cpu,reduce",
+        from workers.celery_app import QUEUES
+
+        args = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-Q", ",".join(QUEUES),
                 "-c", "1", "-P", "prefork", "-l", "INFO", "-n", f"mvbench{i}-{uuid.uuid4().hex[:6]}@%h",
                 "--without-gossip", "--without-mingle", "--without-heartbeat"]  # fmt: skip
         proc = servers._spawn(args, log, cwd=ROOT, env=env)

@@ -87,6 +87,8 @@ def serve(
     embedded worker thread)."""
     import uvicorn
 
+    from api.config import server_options
+
     app, new_key = build_app(data_dir, api_key)
     s = app.state.settings
     typer.echo(f"midview: database {s.database_url}, storage {s.storage}, dispatcher {s.dispatcher}")
@@ -99,4 +101,4 @@ def serve(
         import webbrowser
 
         threading.Timer(1.5, webbrowser.open, [f"http://{host}:{port}/ui/"]).start()
-    uvicorn.run(app, host=host, port=port, log_level=str(s.log_level).lower())
+    uvicorn.run(app, host=host, port=port, log_level=str(s.log_level).lower(), **server_options(s))

@@ -8,7 +8,7 @@ Register in cli/main.py:
 
     midview worker --queues gpu --concurrency 1            # a GPU machine: SfM, 3DGS, rendering
     midview worker --queues cpu,reduce --concurrency 4     # CPU machines: per-view matching, reducer
-    midview worker --queues reduce --beat                  # one per deployment runs the periodic tasks
+    midview worker --queues control --beat                 # one per deployment: the periodic tasks
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ from typing import Annotated
 
 import typer
 
-QUEUES = ("gpu", "cpu", "reduce")
+ALL_QUEUES = "gpu,cpu,reduce,control"
 
 
 def worker_argv(
-    queues: str = "gpu,cpu,reduce",
+    queues: str = ALL_QUEUES,
     concurrency: int = 1,
     beat: bool = False,
     loglevel: str = "INFO",
@@ -29,6 +29,8 @@ def worker_argv(
     hostname: str | None = None,
 ) -> list[str]:
     """The `celery worker` arguments; ValueError for an unknown queue."""
+    from workers.celery_app import QUEUES
+
     names = [q.strip() for q in queues.split(",") if q.strip()]
     bad = [q for q in names if q not in QUEUES]
     if not names or bad:
@@ -42,7 +44,9 @@ def worker_argv(
 
 
 def worker(
-    queues: Annotated[str, typer.Option(help="Comma-separated queues: gpu, cpu, reduce")] = "gpu,cpu,reduce",
+    queues: Annotated[
+        str, typer.Option(help="Comma-separated queues: gpu, cpu, reduce, control (periodic tasks)")
+    ] = ALL_QUEUES,
     concurrency: Annotated[int, typer.Option(help="Worker processes (1 per GPU on gpu queues)")] = 1,
     beat: Annotated[
         bool, typer.Option(help="Also run the periodic tasks (reconcile, webhooks): one per deployment")

@@ -278,7 +278,9 @@ def celery_worker(service_settings, tmp_path_factory):
     folder = tmp_path_factory.mktemp("celery-worker")
     hostname = f"midview-test-{uuid.uuid4().hex[:6]}@%h"
     log = folder / "worker.log"
-    args = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-Q", "gpu,cpu,reduce",
+    from workers.celery_app import QUEUES
+
+    args = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-Q", ",".join(QUEUES),
             "-c", "1", "-P", "prefork", "-l", "INFO", "-n", hostname,
             "--without-gossip", "--without-mingle", "--without-heartbeat"]  # fmt: skip
     root = Path(__file__).resolve().parents[1]

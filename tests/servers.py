@@ -445,11 +445,14 @@ def start_uvicorn(
     when the chosen one was taken meanwhile; RuntimeError with the log's tail when it does not start."""
     import httpx
 
+    from api.config import ApiSettings, server_flags
+
     cwd = cwd or Path(__file__).resolve().parents[1]
     for _ in range(3):
         (port,) = free_ports(1)
         args = [sys.executable, "-m", "uvicorn", "--factory", app, "--host", "127.0.0.1", "--port", str(port),
-                "--log-level", log_level, "--no-access-log", "--workers", str(workers)]  # fmt: skip
+                "--log-level", log_level, "--no-access-log", "--workers", str(workers),
+                *server_flags(ApiSettings.model_construct())]  # fmt: skip
         proc = _spawn(args, log, cwd=cwd, env=env)
         base = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + timeout

@@ -4,9 +4,13 @@ short 4xx, and nothing stored."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import os
 import socket
+import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -171,6 +175,56 @@ def test_uvicorn_answers_a_lying_content_length_at_once(tmp_path, request):
         assert reply.startswith(b"HTTP/1.1 413") and time.perf_counter() - t0 < 2.0
     finally:
         server.stop()
+
+
+def test_midview_serve_refuses_a_huge_request_head_at_once(tmp_path):
+    """`midview serve` bounds the request line and headers (max_header_bytes): a 64 MB header is answered
+    400 and its connection closed within a second, while requests with normal headers are served."""
+    import subprocess
+
+    import httpx
+    from servers import _stop, free_ports
+
+    (port,) = free_ports(1)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
+    env.update(MIDVIEW_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    exe = Path(sys.executable).with_name("midview")
+    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "cli.main"]
+    args = [
+        *cmd,
+        "serve",
+        "--port",
+        str(port),
+        "--data-dir",
+        str(tmp_path / "data"),
+        "--api-key",
+        "mv_" + "h" * 40,
+    ]
+    with open(tmp_path / "serve.log", "wb") as log:
+        proc = subprocess.Popen(args, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert proc.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
+            time.sleep(0.2)
+        for size in (1 << 20, 64 << 20):
+            with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+                t0 = time.perf_counter()
+                with contextlib.suppress(ConnectionError):  # the server may close while we still send
+                    sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * size + b"\r\n\r\n")
+                reply = sock.recv(4096)
+                elapsed = time.perf_counter() - t0
+            assert reply.startswith(b"HTTP/1.1 400") and elapsed < 1.0, (size, reply[:80], elapsed)
+        r = httpx.get(f"{base}/healthz", headers={"X-Normal": "a" * 8000}, timeout=5)
+        assert r.status_code == 200
+    finally:
+        _stop(proc)
 
 
 # -- rate limits -------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from services.pipeline import STAGE_QUEUES
+from workers.celery_app import CONTROL_QUEUE, DELIVER_WEBHOOKS, RECONCILE, TASK_QUEUES
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -40,8 +41,23 @@ def test_compose_runs_a_worker_per_queue():
     for queue in set(STAGE_QUEUES.values()):
         command = services[f"worker-{queue}"]["command"]
         assert command[command.index("-Q") + 1] == queue
+    assert {TASK_QUEUES[RECONCILE], TASK_QUEUES[DELIVER_WEBHOOKS]} == {CONTROL_QUEUE}
+    control = services["worker-control"]["command"]  # the periodic tasks never wait behind a stage
+    assert control[control.index("-Q") + 1] == CONTROL_QUEUE
     gpu = services["worker-gpu"]["deploy"]["resources"]["reservations"]["devices"][0]
     assert gpu["driver"] == "nvidia" and "gpu" in gpu["capabilities"]
+
+
+def test_the_image_serves_the_api_with_a_bounded_request_head():
+    """The Dockerfile's uvicorn command carries api.config.server_flags at the defaults."""
+    import json
+
+    from api.config import ApiSettings, server_flags
+
+    text = (ROOT / "deploy" / "Dockerfile").read_text().replace("\\\n", "")
+    cmd = json.loads(next(line for line in text.splitlines() if line.startswith("CMD "))[4:])
+    flags = server_flags(ApiSettings.model_construct())
+    assert any(cmd[i : i + len(flags)] == flags for i in range(len(cmd))), cmd
 
 
 def test_kubernetes_workers_scale_on_their_queue():
@@ -53,6 +69,11 @@ def test_kubernetes_workers_scale_on_their_queue():
     for queue in set(STAGE_QUEUES.values()):
         trigger = scaled[f"midview-worker-{queue}"]["spec"]["triggers"][0]
         assert trigger["type"] == "redis" and trigger["metadata"]["listName"] == queue
+    control = next(d for d in docs if d.get("metadata", {}).get("name") == "midview-worker-control")
+    assert control["kind"] == "Deployment" and control["spec"]["replicas"] >= 1
+    command = control["spec"]["template"]["spec"]["containers"][0]["command"]
+    assert command[command.index("-Q") + 1] == CONTROL_QUEUE
+    assert "midview-worker-control" not in scaled  # never scaled to zero
 
 
 # Python versions an Ubuntu base image has in its own archive (apt), by the CUDA image tag's suffix

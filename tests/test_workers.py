@@ -256,6 +256,48 @@ def test_reconcile_redispatches_what_stalled(sessions):
     assert [a.job_id for a in actions] == [stalled] and "broker down" in actions[0].error
 
 
+def test_a_message_lost_between_stages_is_dispatched_again_after_the_heartbeat_timeout(sessions):
+    """The broker was read (NodeCheck.known) and holds nothing of a job whose stage finished: its next
+    message is lost; dispatched again from its current stage after heartbeat_timeout_s, not after
+    stall_timeout_s. A job the broker knows, a running stage run and a fresh stage end are left alone."""
+    from conftest import RecordingDispatcher
+
+    from workers.reconcile import NodeCheck
+    from workers.reconcile import reconcile as run_reconcile
+
+    _, pid = _project(sessions)
+    now = utcnow()
+    with sessions() as s:
+        ids = {}
+        for name, ago in (("lost", 45), ("known", 45), ("fresh", 10), ("running", 45)):
+            ids[name] = _job(s, pid, JobStatus.running, "aerial_sfm", ago, f"root-{name}", now=now)
+            run = s.scalar(sa.select(StageRun).where(StageRun.job_id == ids[name]))
+            if name != "running":
+                crud.finish_stage(s, run, StageStatus.succeeded)
+                run.finished_at = now - timedelta(seconds=ago)
+            run.heartbeat_at = now - timedelta(seconds=ago if name != "running" else 5)
+        ids["queued"] = _job(s, pid, JobStatus.queued, None, 45, "root-queued", now=now)
+        s.commit()
+    mine = set(ids.values())
+    nodes = NodeCheck(
+        ping=lambda names: set(names), heartbeat_timeout_s=30.0, known={ids["known"]}, active={ids["known"]}
+    )
+    d = RecordingDispatcher()
+    with sessions() as s:
+        actions = [
+            a for a in run_reconcile(s, d, now, 900, is_live={ids["known"]}, nodes=nodes) if a.job_id in mine
+        ]
+        s.commit()
+    got = {(a.job_id, a.from_stage) for a in actions}
+    assert got == {(ids["lost"], "aerial_sfm"), (ids["queued"], None)}, actions
+    assert all("no task or message of it in the broker" in a.reason for a in actions)
+    # without a read of the broker (known None) the stall timeout still rules
+    d = RecordingDispatcher()
+    with sessions() as s:
+        nodes.known = None
+        assert [a for a in run_reconcile(s, d, now, 900, nodes=nodes) if a.job_id in mine] == []
+
+
 def test_redis_liveness_sees_running_and_queued_tasks(redis_url):
     import redis
 

@@ -1,12 +1,14 @@
 """The Celery application of the midview workers.
 
-    celery -A workers.celery_app worker -Q gpu,cpu,reduce -c 1     # or: midview worker --queues ...
+    celery -A workers.celery_app worker -Q gpu,cpu,reduce,control -c 1   # or: midview worker --queues ...
     celery -A workers.celery_app beat                              # exactly one per deployment
 
 Queues (services.pipeline.STAGE_QUEUES): `gpu` (aerial SfM, 3DGS, view planning and rendering), `cpu`
-(one task per rendered view, and the fan-out), `reduce` (reducer, combined SfM, finalize, the
-periodic reconcile and webhook deliveries). Settings come from MIDVIEW_* (shared.config.Settings):
-broker_url, result_backend, and what the tasks need (database_url, storage, work_dir, ...).
+(one task per rendered view, and the fan-out), `reduce` (reducer, combined SfM, finalize) and `control`
+(the periodic reconcile and webhook deliveries: short tasks that must never wait behind a long stage,
+so a light worker of their own serves them in docker-compose.yml and deploy/k8s). Settings come from
+MIDVIEW_* (shared.config.Settings): broker_url, result_backend, and what the tasks need (database_url,
+storage, work_dir, ...).
 
 Delivery: tasks are acknowledged after they ran (acks_late) and requeued when their worker process dies
 (reject_on_worker_lost), one message prefetched per process; every task is idempotent (stages skip what
@@ -26,7 +28,8 @@ from kombu import Exchange, Queue
 from services.pipeline import STAGE_QUEUES
 from shared.config import Settings, get_settings
 
-QUEUES = ("gpu", "cpu", "reduce")
+CONTROL_QUEUE = "control"
+QUEUES = ("gpu", "cpu", "reduce", CONTROL_QUEUE)
 DEFAULT_QUEUE = "reduce"
 # a message not acknowledged within this time is delivered again (Redis transport): longer than any task
 VISIBILITY_TIMEOUT_S = 6 * 3600
@@ -46,8 +49,8 @@ DELIVER_WEBHOOKS = "midview.deliver_webhooks"
 TASK_QUEUES = {
     STAGE_UNIT: "cpu",  # the fan-out task sets each unit's queue (services.pipeline.FanOut.queue)
     FINALIZE: "reduce",
-    RECONCILE: "reduce",
-    DELIVER_WEBHOOKS: "reduce",
+    RECONCILE: CONTROL_QUEUE,
+    DELIVER_WEBHOOKS: CONTROL_QUEUE,
 }
 
 
@@ -121,12 +124,12 @@ def celery_config(settings: Settings) -> dict[str, Any]:
             "reconcile": {
                 "task": RECONCILE,
                 "schedule": settings.reconcile_every_s,
-                "options": {"queue": "reduce", "expires": settings.reconcile_every_s * 2},
+                "options": {"queue": CONTROL_QUEUE, "expires": settings.reconcile_every_s * 2},
             },
             "deliver_webhooks": {
                 "task": DELIVER_WEBHOOKS,
                 "schedule": WEBHOOKS_EVERY_S,
-                "options": {"queue": "reduce", "expires": WEBHOOKS_EVERY_S * 2},
+                "options": {"queue": CONTROL_QUEUE, "expires": WEBHOOKS_EVERY_S * 2},
             },
         },
     }

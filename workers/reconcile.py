@@ -21,6 +21,11 @@ from that stage, unless a task of the job runs or a message of it waits in a que
 A broker that restarted (Redis crashed; its memory lost) loses the messages and the task keys; the
 worker, reconnected, answers pings, and its task was cancelled on the connection loss: a stale heartbeat
 whose job the broker holds nothing of (`known`: running, queued or reserved) is given up the same way.
+The same loss between two stages (the next stage's message waited in a queue) leaves a job with no
+stage running: when the broker was read, such a job that has shown no sign of life for
+heartbeat_timeout_s and of which the broker holds nothing is dispatched again at once (from its current
+stage, skipped if up to date), not after stall_timeout_s; likewise a queued job whose first message
+was lost.
 
 `reconcile` returns the actions it took (and logs them), so that it can be tested on database rows with
 a recording dispatcher.
@@ -143,6 +148,27 @@ def lost_runs(session: Session, now: datetime, nodes: NodeCheck) -> dict[str, tu
     return out
 
 
+def _message_lost(
+    session: Session, job: Job, now: datetime, last: datetime, nodes: NodeCheck | None
+) -> str | None:
+    """Why the job's next message is lost (see the module), or None: the broker was read and holds
+    nothing of the job, no stage of it runs, and it has been idle for the heartbeat timeout (longer than
+    the moment between a task's end and its successor's message)."""
+    if nodes is None or nodes.known is None or job.id in nodes.known:
+        return None
+    idle = (now - last).total_seconds()
+    if idle < nodes.heartbeat_timeout_s:
+        return None
+    running = session.scalar(
+        sa.select(sa.func.count())
+        .select_from(StageRun)
+        .where(StageRun.job_id == job.id, StageRun.status == StageStatus.running)
+    )
+    if running:
+        return None  # a stage run without its task: lost_runs decides (its heartbeat, its node)
+    return f"{job.status.value}, no stage running for {idle:.0f} s and no task or message of it in the broker"
+
+
 def _probe(is_live: LiveProbe) -> Callable[[str], bool | None]:
     if is_live is None:
         return lambda job_id: None
@@ -185,6 +211,11 @@ def reconcile(
             actions.append(_dispatch(session, dispatcher, job, from_stage, f"worker lost: {why}"))
             continue
         last = last_activity(session, job)
+        message_lost = _message_lost(session, job, now, last, nodes)
+        if message_lost is not None:
+            from_stage = job.current_stage if job.current_stage in stages else None
+            actions.append(_dispatch(session, dispatcher, job, from_stage, message_lost))
+            continue
         if last > cutoff:
             continue
         alive = live(job.id)

@@ -186,10 +186,11 @@ def get_upload(
     return _out(_load(session, project, upload_id), storage)
 
 
-def _received(storage: Storage, upload: Upload) -> list[ReceivedPart]:
-    """The parts the storage holds for an upload; 404 when the storage no longer knows it."""
+def _received(storage: Storage, upload: Upload, etags: dict[int, str] | None = None) -> list[ReceivedPart]:
+    """The parts the storage holds for an upload (those `etags` names where a part was sent again);
+    404 when the storage no longer knows it."""
     try:
-        listed = storage.list_parts(upload.storage_key, upload.storage_upload_id)
+        listed = storage.list_parts(upload.storage_key, upload.storage_upload_id, etags)
     except StorageKeyError:
         raise HTTPException(
             status.HTTP_404_NOT_FOUND, f"upload {upload.id}: the storage no longer has it; start again"
@@ -312,12 +313,12 @@ def _parts_to_complete(storage: Storage, upload: Upload, body: UploadComplete) -
     return parts
 
 
-def _check_part_sizes(storage: Storage, upload: Upload) -> None:
-    """422 when a part the storage holds is not its planned size (sent around the signed length): the
+def _check_part_sizes(storage: Storage, upload: Upload, parts: list[tuple[int, str]]) -> None:
+    """422 when a part to assemble is not its planned size (sent around the signed length): the
     parts are never assembled, nor downloaded, and the client may send that part again."""
     wrong = [
         f"part {p.part_number} is {p.size} bytes, not {_part_size(upload, p.part_number)}"
-        for p in _received(storage, upload)
+        for p in _received(storage, upload, dict(parts))
         if p.size != _part_size(upload, p.part_number)
     ]
     if wrong:
@@ -358,7 +359,7 @@ def complete_upload(
             )
         upload.sha256 = body.sha256.lower()
     parts = _parts_to_complete(storage, upload, body)
-    _check_part_sizes(storage, upload)
+    _check_part_sizes(storage, upload, parts)
     if crud.get_image(session, project.id, upload.name) is not None:
         _drop(session, storage, upload)
         raise HTTPException(

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import abc
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -134,9 +134,10 @@ class Storage(abc.ABC):
         """Upload one part through this process; return its ETag."""
 
     @abc.abstractmethod
-    def list_parts(self, key: str, upload_id: str) -> list[PartStat]:
-        """The parts an unfinished upload has received so far, by part number (a client that lost its
-        ETags resumes from them); StorageKeyError when the upload does not exist."""
+    def list_parts(self, key: str, upload_id: str, etags: Mapping[int, str] | None = None) -> list[PartStat]:
+        """The parts an unfinished upload has received so far, one per part number (a client that lost
+        its ETags resumes from them): the newest, or the one whose ETag `etags` names for its number
+        where a part was sent more than once; StorageKeyError when the upload does not exist."""
 
     @abc.abstractmethod
     def complete_multipart(self, key: str, upload_id: str, parts: Sequence[tuple[int, str]]) -> ObjectStat:

@@ -8,7 +8,7 @@ import os
 import shutil
 import tempfile
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
@@ -210,7 +210,8 @@ class LocalStorage(Storage):
             raise
         return etag
 
-    def list_parts(self, key: str, upload_id: str) -> list[PartStat]:
+    def list_parts(self, key: str, upload_id: str, etags: Mapping[int, str] | None = None) -> list[PartStat]:
+        """One file per part number: a part sent again replaces the earlier one."""
         folder = self._upload_dir(key, upload_id)
         out = []
         for part in sorted(folder.glob("[0-9]" * 5 + ".part")):

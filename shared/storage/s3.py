@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -42,6 +42,12 @@ def _errors(what: str) -> Iterator[None]:
 
 def _stamp(part: PartStat) -> float:
     return part.last_modified.timestamp() if part.last_modified is not None else 0.0
+
+
+def _chosen(versions: list[PartStat], etag: str | None) -> PartStat:
+    """The send of one part number with `etag`, else the newest (the later listed on a tie)."""
+    order = range(len(versions))
+    return versions[max(order, key=lambda i: (versions[i].etag == etag, _stamp(versions[i]), i))]
 
 
 class S3Storage(Storage):
@@ -246,24 +252,24 @@ class S3Storage(Storage):
             )
         return r["ETag"].strip('"')
 
-    def list_parts(self, key: str, upload_id: str) -> list[PartStat]:
-        """The parts received; one per part number, the newest (SeaweedFS lists every upload of a part
-        number that was sent again, real S3 only the last)."""
+    def list_parts(self, key: str, upload_id: str, etags: Mapping[int, str] | None = None) -> list[PartStat]:
+        """The parts received; one per part number (SeaweedFS lists every upload of a part number that
+        was sent again, real S3 only the last): the one `etags` names, else the newest (LastModified has
+        one-second steps, so two sends within a second tie: name the ETag to be sure)."""
+        named = {n: e.strip('"') for n, e in (etags or {}).items()}
         validate_key(key)
         pages = self.client.get_paginator("list_parts").paginate(
             Bucket=self.bucket, Key=key, UploadId=upload_id
         )
-        newest: dict[int, PartStat] = {}
+        sent: dict[int, list[PartStat]] = {}
         with _errors(f"list parts of {key!r}"):
             for page in pages:
                 for p in page.get("Parts", []):
                     part = PartStat(
                         int(p["PartNumber"]), int(p["Size"]), str(p["ETag"]).strip('"'), p.get("LastModified")
                     )
-                    seen = newest.get(part.part_number)
-                    if seen is None or _stamp(part) >= _stamp(seen):
-                        newest[part.part_number] = part
-        return [newest[n] for n in sorted(newest)]
+                    sent.setdefault(part.part_number, []).append(part)
+        return [_chosen(sent[n], named.get(n)) for n in sorted(sent)]
 
     def complete_multipart(self, key: str, upload_id: str, parts: Sequence[tuple[int, str]]) -> ObjectStat:
         validate_key(key)
