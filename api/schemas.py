@@ -350,13 +350,22 @@ class OptionSpec(BaseModel):
     name: str
     type: str
     default: Any
+    defaults: dict[str, Any] = Field(description="The option's default under each profile")
     help: str
     choices: list[Any] | None = None
     minimum: float | None = None
     maximum: float | None = None
 
 
+class ProfileOut(BaseModel):
+    name: str
+    help: str
+    options: dict[str, Any] = Field(description="The options this profile sets")
+    offered: bool = Field(description="This service's workers run it: a job that names no profile gets it")
+
+
 class OptionsOut(BaseModel):
+    profiles: list[ProfileOut]
     options: list[OptionSpec]
     json_schema: dict[str, Any]
 

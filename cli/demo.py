@@ -11,6 +11,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 logger = logging.getLogger("midview.cli.demo")
 
@@ -23,22 +24,12 @@ DEFAULT_TEXTURES = ROOT.parent / "shared" / "data" / "lund_street"
 DEMO_PRESET = "isprs"
 
 # demo settings: chosen so that the demo's survey finishes within 20 minutes on 2 CPU cores
-DEMO_OPTIONS = {
-    "sfm_features": "sift",
-    "matcher": "aliked-lightglue",
-    "view_planner": "paper",  # the best single planner (bench/method.py); "both" is better, twice the views
-    "views_per_ground_image": 2,
-    "splat_steps": 3000,  # 1000 steps: GT-correct 0.6 per pair, 3000: 3.4 (the 3DGS is what limits it)
-    "splat_max_width": 400,
-    "max_keypoints": 1024,
-    "seed": 0,
-}
-
-# seconds of 3DGS training at most (services.splat `time_budget_s`): 3000 steps took 8.5-9.5 min on most
-# sessions' machines (the baselines' process beside it), 14-17 min on two slower ones, where the demo ran
-# 24-30 min; within the budget the run takes fewer steps. 540 s since the views take their colour from the
-# aerial images (the demo on isprs: 20.6 min with 600 s, the rendering of its views 75 s instead of 5)
-DEMO_SPLAT_BUDGET_S = 540.0
+# the demo's job: the cpu profile (services.pipeline.PROFILES: paper planner, 2 views per ground image,
+# 3000 3DGS steps at 400 px within a 540 s budget, 1024 keypoints), SIFT aerial SfM, ALIKED+LightGlue.
+# The profile's 3DGS budget: 3000 steps took 8.5-9.5 min on most sessions' machines (the baselines'
+# process beside it), 14-17 min on two slower ones, where the demo ran 24-30 min; within the budget the
+# run takes fewer steps (the demo on isprs: 20.6 min with 600 s, the rendering of its views 75 s instead of 5)
+DEMO_OPTIONS: dict[str, Any] = {"profile": "cpu", "sfm_features": "sift", "matcher": "aliked-lightglue"}
 
 # the demo's deadline (`--deadline`, seconds from its start): the 3DGS trains for what is left of it once the
 # stages before it have run, less the stages after it, estimated as DEMO_AFTER_SPLAT_RATIO times the time

@@ -14,10 +14,12 @@ import json
 import logging
 import time
 from pathlib import Path
+from typing import Any
 
 import typer
 
 from cli import demo as demo_mod
+from cli.job_options import explain, with_job_options
 from services.pipeline import DEFAULT_STAGES, STAGES
 
 logger = logging.getLogger("midview.cli.run")
@@ -72,6 +74,7 @@ def run_job(job, stages: list[str] | None = None, from_stage: str | None = None,
         return pipeline.run(job, stages=stages, from_stage=from_stage, progress=prog, force=force)
 
 
+@with_job_options()
 def run(
     aerial: Path = typer.Argument(..., help="folder of aerial images"),
     ground: Path = typer.Argument(..., help="folder of ground images"),
@@ -80,26 +83,6 @@ def run(
     ),
     out: Path = typer.Argument(..., help="job folder (created; a rerun skips finished stages)"),
     cameras: Path | None = typer.Option(None, "--cameras", help="cameras.json (intrinsics per set)"),
-    view_planner: str = typer.Option("both", help="paper, ground-aware or both (both: best, most views)"),
-    views_per_ground_image: int = typer.Option(2, help="intermediate views per ground image"),
-    matcher: str = typer.Option("aliked-lightglue", help="aliked-lightglue or sift"),
-    sfm_features: str = typer.Option("sift", help="aerial SfM features: sift or aliked"),
-    splat_steps: int = typer.Option(3000, help="3DGS training steps"),
-    splat_time_budget: float | None = typer.Option(
-        None, help="seconds of 3DGS training at most (fewer steps on a slow machine; default: no limit)"
-    ),
-    splat_max_width: int = typer.Option(400, help="3DGS training image width"),
-    block_steps: int = typer.Option(
-        0, help="3DGS steps of each block the views see, at the source resolution (0: no blocks)"
-    ),
-    block_px: int = typer.Option(
-        640, help="block size in pixels of the aerial images at the source resolution"
-    ),
-    max_keypoints: int = typer.Option(1024, help="keypoints per image for matching"),
-    seed: int = typer.Option(0, help="random seed"),
-    out_crs: str | None = typer.Option(
-        None, "--out-crs", help="CRS of the georeferenced outputs, e.g. EPSG:32633 (default: the POS's)"
-    ),
     stages: str | None = typer.Option(
         None, help=f"comma-separated stages to run (default: {','.join(DEFAULT_STAGES)})"
     ),
@@ -136,6 +119,7 @@ def run(
         metavar="KEY=VALUE",
         help="views' rendering conf entry (services.views.rendering), repeatable: --render-set colour=splat",
     ),
+    job_options: dict[str, Any] | None = None,
 ) -> None:
     """Register ground images with aerial images through rendered intermediate views: aerial SfM, 3DGS,
     view planning and rendering, matching, transfer (OUT/transfer/matches.h5, database.db,
@@ -152,6 +136,11 @@ def run(
         _fail(f"unknown stage(s) {bad}: stages are {', '.join(STAGES)}")
     if renderer == "gt" and scene is None:
         _fail("--renderer gt needs --scene (a synthetic scene folder)")
+    options = {"stages": stage_list, **(job_options or {})}
+    try:
+        matcher = pipeline.JobOptions.model_validate(options).matcher
+    except ValidationError as e:
+        _fail(explain(e))
     try:
         overrides = pipeline.parse_settings_overrides(splat_set, view_set, match_set, matcher, render_set)
     except ValueError as e:
@@ -163,21 +152,7 @@ def run(
             ground,
             pos,
             cameras,
-            options={
-                "stages": stage_list,
-                "sfm_features": sfm_features,
-                "matcher": matcher,
-                "view_planner": view_planner,
-                "views_per_ground_image": views_per_ground_image,
-                "splat_steps": splat_steps,
-                "splat_time_budget_s": splat_time_budget,
-                "splat_max_width": splat_max_width,
-                "block_steps": block_steps,
-                "block_px": block_px,
-                "max_keypoints": max_keypoints,
-                "seed": seed,
-                "out_crs": out_crs,
-            },
+            options=options,
             settings={
                 "renderer": renderer,
                 "scene": str(scene) if scene else None,
@@ -219,6 +194,7 @@ def run(
 
 
 # -- demo ------------------------------------------------------------------------------------------
+@with_job_options(exclude=frozenset({"seed"}))
 def demo(
     out: Path = typer.Argument(Path("runs/demo"), help="output folder (scene/, job/, report.html)"),
     preset: str = typer.Option(
@@ -229,48 +205,35 @@ def demo(
         None, help=f"facade photos (default: {demo_mod.DEFAULT_TEXTURES} if present)"
     ),
     renderer: str = typer.Option("splat", help="splat (3DGS) or gt (the ground-truth upper bound)"),
-    view_planner: str = typer.Option(
-        demo_mod.DEMO_OPTIONS["view_planner"], help="paper, ground-aware or both"
-    ),
-    views_per_ground_image: int = typer.Option(demo_mod.DEMO_OPTIONS["views_per_ground_image"]),
-    splat_steps: int = typer.Option(demo_mod.DEMO_OPTIONS["splat_steps"]),
-    splat_time_budget: float = typer.Option(
-        demo_mod.DEMO_SPLAT_BUDGET_S,
-        help="seconds of 3DGS training at most: fewer steps on a slow machine (0: none)",
-    ),
     deadline: float = typer.Option(
         demo_mod.DEMO_DEADLINE_S / 60,
         help="minutes from the start by which the demo should end: the 3DGS trains for what the stages"
         " before it leave (at most --splat-time-budget; 0: no deadline)",
     ),
-    max_keypoints: int = typer.Option(demo_mod.DEMO_OPTIONS["max_keypoints"]),
     supersample: int = typer.Option(1, help="synthesis supersampling (the preset's is 2: slower, smoother)"),
     baselines: bool = typer.Option(True, help="also run the direct baselines"),
     baseline_sfm: bool = typer.Option(True, help="reconstruct with the baselines' matches too (their NRI)"),
     beside: bool = typer.Option(
         True, help="match the baselines in a second process beside the pipeline (else after it)"
     ),
+    job_options: dict[str, Any] | None = None,
 ) -> None:
     """Synthesize a survey, run midview and the direct baselines on it, print one table (NIM, NCM,
     GT-correct, precision, NMP, NRI of ground images) and write OUT/report.html: the dashboard's page of
     the job, static and self-contained, with that table and match pictures."""
+    from pydantic import ValidationError
+
     from services import pipeline, synth
 
     if preset not in synth.confs:
         _fail(f"unknown preset {preset!r}: {', '.join(synth.confs)}")
-    if splat_time_budget < 0:
-        _fail(f"--splat-time-budget must be >= 0 seconds, got {splat_time_budget}")
     if deadline < 0:
         _fail(f"--deadline must be >= 0 minutes, got {deadline}")
-    options = {
-        **demo_mod.DEMO_OPTIONS,
-        "seed": seed,
-        "view_planner": view_planner,
-        "views_per_ground_image": views_per_ground_image,
-        "splat_steps": splat_steps,
-        "splat_time_budget_s": splat_time_budget or None,
-        "max_keypoints": max_keypoints,
-    }
+    options = {**demo_mod.DEMO_OPTIONS, "seed": seed, **(job_options or {})}
+    try:
+        pipeline.JobOptions.model_validate(options)
+    except ValidationError as e:
+        _fail(explain(e))
     try:
         demo_mod.run_demo(
             out,

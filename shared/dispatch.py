@@ -19,6 +19,7 @@ not import Celery unless it is used:
 from __future__ import annotations
 
 import importlib
+import logging
 from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
@@ -36,6 +37,21 @@ class Dispatcher(Protocol):
     def revoke(self, job_id: str) -> None:
         """Stop the job's queued and running tasks; must not fail when nothing is running."""
         ...
+
+    # optional: profile() -> "cpu" | "gpu", the job profile its workers offer (offered_profile)
+
+
+def offered_profile(dispatcher: Any) -> str:
+    """The job profile the dispatcher's workers offer (its optional `profile()`: "cpu" or "gpu"); "cpu"
+    when it has none or cannot tell."""
+    probe = getattr(dispatcher, "profile", None)
+    if not callable(probe):
+        return "cpu"
+    try:
+        return "gpu" if probe() == "gpu" else "cpu"
+    except Exception:
+        logging.getLogger("midview.dispatch").exception("could not read the workers' profile")
+        return "cpu"
 
 
 class DispatcherError(RuntimeError):

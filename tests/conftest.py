@@ -37,6 +37,10 @@ class RecordingDispatcher:
     def __init__(self):
         self.calls = []
         self.fail = None  # an exception for submit to raise (dispatch failures)
+        self.offers = "cpu"  # the job profile its (imagined) workers offer
+
+    def profile(self):
+        return self.offers
 
     def submit(self, job_id, from_stage=None):
         if self.fail is not None:

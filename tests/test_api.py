@@ -533,6 +533,48 @@ def test_job_options_listing(api_env) -> None:
     assert set(opts["view_planner"]["choices"]) == {"paper", "ground-aware", "both"}
     assert all(o["help"] for o in opts.values())
     assert r.json()["json_schema"]["additionalProperties"] is False
+    # the profiles: each option's default per profile; the one this service's workers run is offered
+    profiles = {p["name"]: p for p in r.json()["profiles"]}
+    assert set(profiles) == {"cpu", "gpu"} and profiles["cpu"]["offered"] and not profiles["gpu"]["offered"]
+    assert opts["splat_steps"]["defaults"] == {"cpu": 3000, "gpu": 7000}
+    assert opts["splat_steps"]["default"] == profiles["cpu"]["options"]["splat_steps"] == 3000
+    assert opts["seed"]["defaults"] == {"cpu": 0, "gpu": 0}
+
+
+def test_a_job_takes_its_profile_from_the_workers_unless_it_names_one(api_env, make_jpeg) -> None:
+    """No profile named: the one the workers offer (cpu on the embedded worker, gpu where a gsplat worker
+    serves the gpu queue); named: that one; an option given explicitly wins over either profile."""
+    c, t, disp = api_env.client, api_env.tenant(), api_env.dispatcher
+    pid = _ready_project(api_env, t, make_jpeg)
+
+    def create(options: dict) -> dict:
+        r = c.post(f"/projects/{pid}/jobs", json={"options": options}, headers=t.headers)
+        assert r.status_code == 201, r.text
+        return r.json()["options"]
+
+    try:
+        cpu = create({})
+        assert (cpu["profile"], cpu["splat_steps"], cpu["splat_max_width"], cpu["splat_time_budget_s"]) == (
+            "cpu", 3000, 400, 540.0,
+        )  # fmt: skip
+        disp.offers = "gpu"
+        offered = {p["name"]: p["offered"] for p in c.get("/options").json()["profiles"]}
+        assert offered == {"cpu": False, "gpu": True}
+        gpu = create({"seed": 5})
+        assert (gpu["profile"], gpu["splat_steps"], gpu["views_per_ground_image"], gpu["seed"]) == (
+            "gpu",
+            7000,
+            4,
+            5,
+        )
+        named = create({"profile": "cpu", "max_keypoints": 2048})
+        assert (named["profile"], named["splat_steps"], named["max_keypoints"]) == ("cpu", 3000, 2048)
+        mixed = create({"splat_steps": 1234})
+        assert (mixed["profile"], mixed["splat_steps"], mixed["splat_max_width"]) == ("gpu", 1234, 1600)
+        r = c.post(f"/projects/{pid}/jobs", json={"options": {"profile": "tpu"}}, headers=t.headers)
+        assert r.status_code == 422 and "profile" in r.text
+    finally:
+        disp.offers = "cpu"
 
 
 def test_job_create_validation_and_preconditions(api_env, make_jpeg) -> None:
@@ -608,7 +650,7 @@ def test_job_create_status_cancel_rerun(api_env, make_jpeg) -> None:
     job = r.json()
     jid = job["id"]
     assert job["status"] == "queued" and job["progress"] == 0 and job["attempt"] == 1
-    assert job["options"]["matcher"] == "sift" and job["options"]["max_keypoints"] == 4096
+    assert job["options"]["matcher"] == "sift" and job["options"]["max_keypoints"] == 1024  # the cpu profile
     assert disp.calls[-1] == ("submit", jid, None)
     assert [j["id"] for j in c.get(f"/projects/{pid}/jobs", headers=t.headers).json()] == [jid]
 

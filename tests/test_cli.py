@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from typer.testing import CliRunner
 
@@ -159,8 +161,36 @@ def test_run_takes_splat_view_and_match_overrides_and_rejects_bad_ones(tiny_scen
 def test_demo_rejects_a_negative_time_budget(tmp_path):
     result = runner.invoke(app, ["demo", str(tmp_path / "demo"), "--splat-time-budget", "-5"])
     assert result.exit_code == 2
-    assert "--splat-time-budget must be >= 0 seconds" in result.output
+    assert "--splat-time-budget-s: Input should be greater than or equal to 1" in result.output
     assert not (tmp_path / "demo").exists()
+
+
+def test_run_and_demo_take_every_job_option_from_the_model(tiny_scene, tmp_path):
+    """A flag per JobOptions field with each profile's default in its help; a flag not given leaves the
+    option to --profile (cpu by default), a flag given wins."""
+    from services.pipeline import PROFILES, JobOptions
+
+    for command in ("run", "demo"):
+        text = runner.invoke(app, [command, "--help"], env={"COLUMNS": "400"}).output
+        for name in set(JobOptions.model_fields) - {"stages"} - ({"seed"} if command == "demo" else set()):
+            assert "--" + name.replace("_", "-") in text, (command, name)
+        assert f"defaults cpu {PROFILES['cpu']['splat_steps']}, gpu {PROFILES['gpu']['splat_steps']}" in text
+    images = tiny_scene / "images"
+    base = ["run", str(images / "aerial"), str(images / "ground"), str(tiny_scene / "pos.csv")]
+    for profile, extra in (
+        ("cpu", []),
+        ("gpu", ["--profile", "gpu"]),
+        ("mixed", ["--profile", "gpu", "--splat-steps", "123"]),
+    ):
+        out = tmp_path / profile
+        r = runner.invoke(app, [*base, str(out), "--stages", "nope", *extra])  # stops before any stage runs
+        assert r.exit_code == 2 and "unknown stage" in r.output
+        r = runner.invoke(
+            app, [*base, str(out), "--from", "combined_sfm", "--stages", "combined_sfm", *extra]
+        )
+        options = json.loads((out / "job.json").read_text())["options"]
+        expected = {"cpu": (3000, 400), "gpu": (7000, 1600), "mixed": (123, 1600)}[profile]
+        assert (options["splat_steps"], options["splat_max_width"]) == expected, (profile, r.output)
 
 
 def test_demo_exits_with_the_reason_when_a_stage_cannot_go_on(tiny_scene, tmp_path, monkeypatch):
@@ -188,5 +218,5 @@ def test_run_rejects_a_time_budget_under_a_second(tmp_path):
     (tmp_path / "pos.csv").write_text("name,lat,lon,h\n")
     result = runner.invoke(app, ["run", *args, "--splat-time-budget", "0.5"])
     assert result.exit_code == 2
-    assert "splat_time_budget_s" in result.output
+    assert "--splat-time-budget-s: Input should be greater than or equal to 1" in result.output
     assert not (tmp_path / "job").exists()

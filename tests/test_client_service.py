@@ -43,6 +43,7 @@ OPTIONS = {  # as test_service_e2e: small enough for 2 CPU cores, every option b
 }
 PADDED = "A0008"  # the aerial image made large
 JOB_TIMEOUT_S = 600
+CAMPAIGN_STAGES = {"stages": ["aerial_sfm", "train_splat"], "splat_steps": 200}
 
 
 def _midview() -> list[str]:
@@ -269,7 +270,8 @@ def test_a_campaign_with_a_failure_rerun_from_its_stage(service, survey, tmp_pat
         f"{name}-{i},{rel}/images/aerial,{rel}/images/ground,{rel}/pos.csv,{rel}/cameras.json"
         for i in (1, 2, 3)
     ]
-    options = json.dumps(OPTIONS).replace('"', '""')
+    # the aerial stages only, so three jobs stay short: the campaign's orchestration is under test here
+    options = json.dumps({**OPTIONS, **CAMPAIGN_STAGES}).replace('"', '""')
     manifest.write_text(
         "name,aerial,ground,pos,cameras,options\n" + "".join(f'{r},"{options}"\n' for r in rows)
     )
@@ -284,8 +286,8 @@ def test_a_campaign_with_a_failure_rerun_from_its_stage(service, survey, tmp_pat
             if c:
                 max_active = max(max_active, c["active"])
                 if broken is None and c["jobs"]:
-                    # the first survey's job: break its folder on the worker so its combined SfM fails
-                    broken = service.worker.work_dir / c["jobs"][0]["id"] / "combined" / "models"
+                    # the first survey's job: break its folder on the worker so its 3DGS training fails
+                    broken = service.worker.work_dir / c["jobs"][0]["id"] / "splat"
                     broken.parent.mkdir(parents=True, exist_ok=True)
                     broken.write_text("not a folder")
             time.sleep(0.3)
@@ -301,7 +303,7 @@ def test_a_campaign_with_a_failure_rerun_from_its_stage(service, survey, tmp_pat
     assert c["jobs_by_status"] == {"succeeded": 2, "failed": 1}, (c, service.worker.text()[-3000:])
     assert max_active <= 2 and c["max_concurrent"] == 2
     failed = next(j for j in c["jobs"] if j["status"] == "failed")
-    assert failed["project_name"] == f"{name}-1" and failed["failed_stage"] == "combined_sfm", failed
+    assert failed["project_name"] == f"{name}-1" and failed["failed_stage"] == "train_splat", failed
     # no more than two at once: the third job was created once one of the first two had finished
     jobs = {j["id"]: service.http.get(f"/jobs/{j['id']}").json() for j in c["jobs"]}
     third = next(j for j in jobs.values() if j["id"] == c["jobs"][2]["id"])
@@ -313,18 +315,19 @@ def test_a_campaign_with_a_failure_rerun_from_its_stage(service, survey, tmp_pat
     args = [*_midview(), "campaign", "retry", name, "--poll", "0.5"]
     retry = subprocess.run(args, cwd=ROOT, env=service.env, text=True, capture_output=True,
                            timeout=JOB_TIMEOUT_S)  # fmt: skip
-    print(f"retry from combined_sfm: {time.monotonic() - t0:.1f} s")
+    print(f"retry from train_splat: {time.monotonic() - t0:.1f} s")
     assert retry.returncode == 0, retry.stdout[-3000:] + retry.stderr[-3000:]
     assert f"rerun {name}-1" in retry.stdout
     job = service.http.get(f"/jobs/{failed['id']}").json()
     assert job["status"] == "succeeded" and job["attempt"] == 2
-    assert [s["stage"] for s in job["stages"] if s["attempt"] == 2] == ["combined_sfm"]
+    assert [s["stage"] for s in job["stages"] if s["attempt"] == 2] == ["train_splat"]
     status = subprocess.run([*_midview(), "campaign", "status", name, "--json"], cwd=ROOT, env=service.env,
                             text=True, capture_output=True, timeout=60)  # fmt: skip
     doc = json.loads(status.stdout)
     assert doc["jobs_by_status"] == {"succeeded": 3} and doc["done"]
-    registered = [j["registered"].get("ground", 0) for j in doc["jobs"]]
-    assert doc["ground_registered"] == sum(registered) and doc["ground_images"] == 12
+    # aerial stages only: each job's outcome counts its aerial images registered, and no ground image
+    assert all(j["registered"].get("aerial", 0) >= 3 for j in doc["jobs"]), doc["jobs"]
+    assert doc["ground_registered"] == 0 and doc["ground_images"] == 0
     print(
         "campaign:", json.dumps({k: doc[k] for k in ("jobs_by_status", "ground_registered", "ground_images")})
     )

@@ -487,6 +487,39 @@ def service(service_settings, celery_worker):
         yield types.SimpleNamespace(app=app, client=client, tenant=tenant, worker=celery_worker)
 
 
+def test_a_worker_node_offers_its_device_and_the_api_picks_the_profile_from_it(
+    service_settings, celery_worker
+):
+    """The worker node advertises {device, queues} in Redis (workers.offer); the Celery dispatcher reads
+    the profile from the offers: cpu from CPU workers, gpu once a CUDA worker serves the gpu queue."""
+    import redis
+
+    from workers.celery_app import QUEUES, redis_url
+    from workers.dispatch import CeleryDispatcher
+    from workers.offer import OFFER_PREFIX, offer_key, read_offers
+
+    r = redis.Redis.from_url(redis_url(service_settings))
+    mine: list[dict] = []
+    deadline = time.monotonic() + 90  # the device is probed in a child process (imports torch)
+    while not mine and time.monotonic() < deadline:
+        mine = [o for o in read_offers(r) if o["hostname"].startswith(celery_worker.hostname.split("@")[0])]
+        time.sleep(0.5)
+    assert mine and mine[0]["device"] == "cpu" and mine[0]["queues"] == sorted(QUEUES), mine
+    assert r.ttl(offer_key(mine[0]["hostname"])) > 0  # a node that dies drops out
+    d = CeleryDispatcher(service_settings)
+    try:
+        assert d.profile() == "cpu"
+        fake = f"{OFFER_PREFIX}gpu-test@{uuid.uuid4().hex[:6]}"
+        r.set(fake, json.dumps({"device": "cuda", "queues": ["gpu"], "hostname": fake}), ex=30)
+        try:
+            assert d.profile() == "cpu"  # within its cache
+            assert d.profile(max_age_s=0) == "gpu"
+        finally:
+            r.delete(fake)
+    finally:
+        d.close()
+
+
 def test_celery_worker_runs_a_job_through_the_broker(service, tiny_survey):
     """POST /jobs -> CeleryDispatcher -> Redis -> worker process -> PostgreSQL + S3 -> GET /jobs."""
     import redis

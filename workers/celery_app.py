@@ -22,7 +22,7 @@ from typing import Any
 
 from celery import Celery
 from celery.beat import PersistentScheduler
-from celery.signals import worker_process_init
+from celery.signals import worker_process_init, worker_ready, worker_shutdown
 from kombu import Exchange, Queue
 
 from services.pipeline import STAGE_QUEUES
@@ -162,6 +162,34 @@ def _reset_after_fork(**_: Any) -> None:
     from workers import tasks
 
     tasks.reset_clients()
+
+
+_advertiser: Any = None
+
+
+@worker_ready.connect
+def _advertise(sender: Any = None, **_: Any) -> None:
+    """The node offers its device and queues to the API (workers.offer) while it runs."""
+    global _advertiser
+    import redis
+
+    from workers.offer import Advertiser
+
+    url = redis_url(get_settings())
+    if url is None or sender is None:
+        return
+    try:
+        queues = [q.name for q in sender.task_consumer.queues]
+    except AttributeError:
+        queues = list(QUEUES)
+    client = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
+    _advertiser = Advertiser(client, str(sender.hostname), queues).start()
+
+
+@worker_shutdown.connect
+def _withdraw(**_: Any) -> None:
+    if _advertiser is not None:
+        _advertiser.stop()
 
 
 class Scheduler(PersistentScheduler):

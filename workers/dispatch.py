@@ -63,6 +63,7 @@ class CeleryDispatcher:
         self._own_app = app is None
         self.app = app or make_app(settings, name="midview-dispatch", set_as_current=False)
         self._redis: Any = None
+        self._profile: tuple[float, str] | None = None  # (when read, the workers' profile)
 
     # bookkeeping in Redis (workers/tasks.py uses the same keys)
     def redis(self) -> Any:
@@ -74,6 +75,27 @@ class CeleryDispatcher:
                 redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5) if url else False
             )
         return self._redis or None
+
+    def profile(self, max_age_s: float = 10.0) -> str:
+        """The job profile the workers offer (workers.offer), read from Redis when the last read is older
+        than max_age_s."""
+        import time
+
+        from workers.offer import profile_of, read_offers
+
+        now = time.monotonic()
+        if self._profile is not None and now - self._profile[0] < max_age_s:
+            return self._profile[1]
+        import redis
+
+        r = self.redis()
+        try:
+            profile = profile_of(read_offers(r)) if r is not None else "cpu"
+        except redis.RedisError as e:  # no word from the workers: the profile every worker runs
+            log.warning("could not read the workers' offers: %s", e)
+            profile = "cpu"
+        self._profile = (now, profile)
+        return profile
 
     def canvas(self, job_id: str, from_stage: str | None = None) -> Any:
         from workers.execute import job_stage_list

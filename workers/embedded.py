@@ -44,6 +44,10 @@ class EmbeddedDispatcher:
             self.start()
 
     # Dispatcher
+    def profile(self) -> str:
+        """The embedded worker runs the cpu profile (services.pipeline.PROFILES)."""
+        return "cpu"
+
     def submit(self, job_id: str, from_stage: str | None = None) -> str | None:
         with self._lock:
             self._cancelled.discard(job_id)

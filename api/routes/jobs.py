@@ -21,13 +21,22 @@ from api.deps import (
     run_db,
 )
 from api.events import job_events
-from api.schemas import JobCreate, JobDetail, JobOut, JobRerun, OptionsOut, OptionSpec, StageRunOut
+from api.schemas import (
+    JobCreate,
+    JobDetail,
+    JobOut,
+    JobRerun,
+    OptionsOut,
+    OptionSpec,
+    ProfileOut,
+    StageRunOut,
+)
 from api.status_cache import Entry
-from services.pipeline import JobOptions, option_specs
+from services.pipeline import PROFILE_HELP, PROFILES, JobOptions, option_specs
 from shared.db import crud
 from shared.db.crud import ConflictError
 from shared.db.models import Job, JobStatus, Project
-from shared.dispatch import Dispatcher
+from shared.dispatch import Dispatcher, offered_profile
 from shared.storage import Storage, StorageKeyError
 from shared.storage.keys import cameras_key
 
@@ -69,9 +78,18 @@ def job_detail(job: Any, stage_runs: list[Any] | None = None) -> JobDetail:
 
 
 @router.get("/options", response_model=OptionsOut, summary="Job options with types, defaults and help")
-def list_options() -> OptionsOut:
+def list_options(dispatcher: DispatcherDep) -> OptionsOut:
+    """The profiles (whose defaults a job takes; `offered`: the one a job that names none gets here) and
+    every option with its type, default per profile and help."""
+    offered = offered_profile(dispatcher)
+    profiles = [
+        ProfileOut(name=name, help=PROFILE_HELP[name], options=values, offered=name == offered)
+        for name, values in PROFILES.items()
+    ]
     return OptionsOut(
-        options=[OptionSpec(**s) for s in option_specs()], json_schema=JobOptions.model_json_schema()
+        profiles=profiles,
+        options=[OptionSpec(**s) for s in option_specs()],
+        json_schema=JobOptions.model_json_schema(),
     )
 
 
@@ -197,6 +215,10 @@ def create_job(
     With a `key`, the creation is idempotent: repeating it returns the job made the first time."""
     body = body if body is not None else JobCreate()
     options = body.options
+    if "profile" not in options.model_fields_set:  # the profile this service's workers run
+        offered = offered_profile(dispatcher)
+        if offered != options.profile:
+            options = options.with_profile(offered)
     if options.out_crs is None and project.crs:  # the project's output CRS, unless the job names one
         options = options.model_copy(update={"out_crs": project.crs})
     dumped = options.model_dump(mode="json")

@@ -38,7 +38,15 @@ service. Progress goes through a callback
 """
 
 from services.pipeline.job import DEFAULT_SETTINGS, JOB_FILE, Job, parse_settings_overrides
-from services.pipeline.options import JobOptions, Stage, option_specs
+from services.pipeline.options import (
+    DEFAULT_PROFILE,
+    PROFILE_HELP,
+    PROFILES,
+    JobOptions,
+    Profile,
+    Stage,
+    option_specs,
+)
 from services.pipeline.registry import (
     DEFAULT_STAGES,
     FANOUT_STAGES,
@@ -88,6 +96,10 @@ __all__ = [
     "FanOut",
     "Job",
     "JobOptions",
+    "DEFAULT_PROFILE",
+    "PROFILE_HELP",
+    "PROFILES",
+    "Profile",
     "Progress",
     "Stage",
     "StageDef",

@@ -2,17 +2,50 @@
 
 The API lists them at `GET /options` (option_specs) and validates `POST /projects/{id}/jobs` bodies with
 JobOptions; the workers read `Job.options` back with `JobOptions.model_validate(job.options)`.
+
+A job's defaults come from its **profile** (PROFILES): `cpu`, the recipe measured on 2 CPU cores that the
+demo and the benches run (docs/measurements.md), and `gpu`, the paper's scale for gsplat workers. An
+option given explicitly wins over its profile's value. The API picks the profile from what the workers
+offer when a request names none (shared.dispatch.offered_profile); `midview run` and `midview demo` use
+`cpu` unless told otherwise.
 """
 
 from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from services.pipeline.registry import DEFAULT_STAGES, GROUND_STAGES, STAGES
 
 Stage = Literal[STAGES]  # the registry's stage names, in pipeline order
+Profile = Literal["cpu", "gpu"]
+
+# each profile's values of the options it sets; the others have one default for every profile
+PROFILES: dict[str, dict[str, Any]] = {
+    "cpu": {
+        "view_planner": "paper",
+        "views_per_ground_image": 2,
+        "splat_steps": 3000,
+        "splat_time_budget_s": 540.0,
+        "splat_max_width": 400,
+        "max_keypoints": 1024,
+    },
+    "gpu": {
+        "view_planner": "both",
+        "views_per_ground_image": 4,
+        "splat_steps": 7000,
+        "splat_time_budget_s": None,
+        "splat_max_width": 1600,
+        "max_keypoints": 4096,
+    },
+}
+DEFAULT_PROFILE: Profile = "cpu"
+PROFILE_HELP = {
+    "cpu": "the recipe measured on 2 CPU cores (the demo's and the benches'): minutes per stage",
+    "gpu": "the paper's scale for workers with a CUDA GPU (gsplat): sharper 3DGS, more views and keypoints",
+}
+CPU = PROFILES[DEFAULT_PROFILE]
 
 
 class JobOptions(BaseModel):
@@ -21,6 +54,11 @@ class JobOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
+    profile: Profile = Field(
+        DEFAULT_PROFILE,
+        description="Whose defaults the options not given take: cpu (the recipe measured on 2 CPU cores) or "
+        "gpu (the paper's scale, gsplat workers); the service picks it from its workers when not given",
+    )
     stages: list[Stage] = Field(
         default_factory=lambda: list(DEFAULT_STAGES),
         min_length=1,
@@ -34,18 +72,17 @@ class JobOptions(BaseModel):
         "aliked-lightglue", description="Matcher between rendered views and the aerial/ground images"
     )
     view_planner: Literal["paper", "ground-aware", "both"] = Field(
-        "both",
+        CPU["view_planner"],
         description="How intermediate viewpoints are chosen between aerial and ground cameras: the paper's"
-        " lowered aerial cameras, views placed above and behind the ground cameras, or both (measured best"
-        " with sharp views: 1171 GT-correct matches and 11/15 ground images, 13/15 with four views per ground"
-        " image, against 835 and 2/15 for paper)",
+        " lowered aerial cameras, views placed above and behind the ground cameras, or both (twice the"
+        " views)",
     )
     views_per_ground_image: int = Field(
-        4, ge=1, le=16, description="Intermediate views rendered per ground image"
+        CPU["views_per_ground_image"], ge=1, le=16, description="Intermediate views rendered per ground image"
     )
-    splat_steps: int = Field(7000, ge=100, le=200_000, description="3DGS training iterations")
+    splat_steps: int = Field(CPU["splat_steps"], ge=100, le=200_000, description="3DGS training iterations")
     splat_time_budget_s: float | None = Field(
-        None,
+        CPU["splat_time_budget_s"],
         ge=1,
         le=7 * 24 * 3600,
         description="Seconds of 3DGS training at most: fewer than splat_steps iterations when the machine is"
@@ -57,8 +94,7 @@ class JobOptions(BaseModel):
         le=200_000,
         description="3DGS training steps of each block of the scene the intermediate views see, on crops of"
         " the aerial images at their source resolution (stage train_blocks); 0: none, the views render from"
-        " the whole-scene 3DGS (the default: on 2 CPU cores 11 blocks of 200 steps took 12 minutes for"
-        " 1.13x the matchable view pixels and no more ground images registered, docs/measurements.md)",
+        " the whole-scene 3DGS",
     )
     block_px: int = Field(
         640,
@@ -69,9 +105,14 @@ class JobOptions(BaseModel):
         " sees it",
     )
     splat_max_width: int = Field(
-        1600, ge=64, le=8192, description="Aerial images are downscaled to this width for 3DGS training"
+        CPU["splat_max_width"],
+        ge=64,
+        le=8192,
+        description="Aerial images are downscaled to this width for 3DGS training",
     )
-    max_keypoints: int = Field(4096, ge=64, le=65_536, description="Keypoints per image for matching")
+    max_keypoints: int = Field(
+        CPU["max_keypoints"], ge=64, le=65_536, description="Keypoints per image for matching"
+    )
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Random seed (view planning, training)")
     out_crs: str | None = Field(
         None,
@@ -79,6 +120,22 @@ class JobOptions(BaseModel):
         description="CRS of the georeferenced outputs (camera lists, GIS files), e.g. EPSG:32633; default: "
         "the project's, else the POS's (GIS files: the site's UTM zone when that is geographic)",
     )
+
+    @model_validator(mode="after")
+    def _profile_defaults(self) -> JobOptions:
+        """The options not given take the profile's values (they stay out of model_fields_set)."""
+        for name, value in PROFILES[self.profile].items():
+            if name not in self.model_fields_set:
+                object.__setattr__(self, name, value)
+        return self
+
+    def given(self) -> dict[str, Any]:
+        """The options given explicitly (JSON values): what a request asked for, before the profile."""
+        return self.model_dump(mode="json", include=set(self.model_fields_set))
+
+    def with_profile(self, profile: str) -> JobOptions:
+        """The same explicit options with another profile's defaults."""
+        return JobOptions.model_validate({**self.given(), "profile": profile})
 
     @field_validator("out_crs")
     @classmethod
@@ -122,9 +179,11 @@ def _type_name(schema: dict[str, Any]) -> str:
 
 
 def option_specs() -> list[dict[str, Any]]:
-    """One entry per option: name, type, default, help, and choices/minimum/maximum where they apply."""
+    """One entry per option: name, type, default (the default profile's), defaults (per profile), help,
+    and choices/minimum/maximum where they apply."""
     schema = JobOptions.model_json_schema()
-    defaults = JobOptions().model_dump(mode="json")
+    by_profile = {p: JobOptions(profile=p).model_dump(mode="json") for p in PROFILES}  # type: ignore[arg-type]
+    defaults = by_profile[DEFAULT_PROFILE]
     out = []
     for name, prop in schema["properties"].items():
         kinds = [b for b in prop.get("anyOf", [prop]) if b.get("type") != "null"]
@@ -135,6 +194,7 @@ def option_specs() -> list[dict[str, Any]]:
             "name": name,
             "type": _type_name(prop) + (" | null" if nullable else ""),
             "default": defaults[name],
+            "defaults": {p: values[name] for p, values in by_profile.items()},
             "help": prop.get("description", ""),
         }
         choices = prop.get("enum") or prop.get("items", {}).get("enum")
