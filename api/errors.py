@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
+from typing import Any
 
 from fastapi import FastAPI, Request, status
 from fastapi.exceptions import RequestValidationError
@@ -35,7 +37,7 @@ def _printable(value: object) -> object:
     return value
 
 
-def validation_detail(errors: list[dict], request: Request) -> list[dict]:
+def validation_detail(errors: Sequence[Any], request: Request) -> list[dict]:
     """A 422's errors: the first few (settings.max_validation_errors), each with its location, message
     and type, and the offending input only when it is short: a large body is never echoed back."""
     limit = getattr(getattr(request.app.state, "settings", None), "max_validation_errors", 20)

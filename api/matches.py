@@ -52,7 +52,7 @@ def _orient(name0: str, name1: str) -> tuple[str, str, bool] | None:
 def list_pairs(path: str | os.PathLike) -> tuple[str, list[dict[str, Any]]]:
     """(method, aerial-ground pairs with their counts), sorted by aerial then ground name."""
     out = []
-    with MatchFile(path) as mf:
+    with MatchFile(Path(path)) as mf:
         for group in mf.h5["pairs"].values():
             oriented = _orient(str(group.attrs["name0"]), str(group.attrs["name1"]))
             if oriented is None:
@@ -73,7 +73,7 @@ def list_pairs(path: str | os.PathLike) -> tuple[str, list[dict[str, Any]]]:
 
 def read_pair(path: str | os.PathLike, aerial: str, ground: str, inliers_only: bool = False) -> dict | None:
     """One pair's matches as matched keypoint coordinates (aerial first), or None if not in the file."""
-    with MatchFile(path) as mf:
+    with MatchFile(Path(path)) as mf:
         pm = mf.get_pair(aerial, ground)
         if pm is None:
             return None

@@ -4,8 +4,9 @@ never held in memory (FastAPI's UploadFile would spool the whole request first).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
@@ -43,8 +44,8 @@ class ReceivedFile:
     content_type: str | None = None
     size: int = 0
     sha256: str = ""
-    _hash: Any = field(default_factory=hashlib.sha256, repr=False)
-    _file: IO[bytes] | None = field(default=None, repr=False)
+    _hash: Any = dataclasses.field(default_factory=hashlib.sha256, repr=False)
+    _file: IO[bytes] | None = dataclasses.field(default=None, repr=False)
 
 
 def _decode(value: bytes) -> str:

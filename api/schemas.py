@@ -11,6 +11,7 @@ from services.pipeline import JobOptions, Stage
 
 ImageSet = Literal["aerial", "ground"]
 WebhookEvent = Literal["job.succeeded", "job.failed"]
+DEFAULT_WEBHOOK_EVENTS: tuple[WebhookEvent, ...] = ("job.succeeded", "job.failed")
 
 
 class Out(BaseModel):
@@ -411,7 +412,7 @@ class PairMatchesOut(PairSummary):
 # webhooks
 class WebhookCreate(In):
     url: AnyHttpUrl
-    events: list[WebhookEvent] = Field(default_factory=lambda: ["job.succeeded", "job.failed"], min_length=1)
+    events: list[WebhookEvent] = Field(default_factory=lambda: list(DEFAULT_WEBHOOK_EVENTS), min_length=1)
 
 
 class WebhookOut(Out):

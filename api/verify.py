@@ -156,7 +156,7 @@ class Verifier:
             )
             .values(verify_started_at=now)
         )
-        return result.rowcount == 1
+        return getattr(result, "rowcount", 0) == 1  # an UPDATE's CursorResult
 
     def expire(self, now: datetime | None = None) -> list[str]:
         """Abort the uploads left open longer than expiry_s since they started (their parts deleted

@@ -9,6 +9,7 @@ VENV=${MIDVIEW_VENV:-.venv}
 "$VENV/bin/ruff" format --check .  # the formatting is ruff's (pre-commit formats on commit)
 "$VENV/bin/lint-imports"  # the architecture contracts of pyproject.toml
 "$VENV/bin/deptry" .  # no missing, unused or transitive-only dependency
+"$VENV/bin/mypy"  # types of api/, workers/, shared/, client/ and services/pipeline/ ([tool.mypy])
 # the compose file is validated by tests/test_deploy.py with Debian's docker-compose (no engine needed)
 if ! command -v docker-compose >/dev/null && command -v apt-get >/dev/null; then
   (apt-get install -y -qq docker-compose >/dev/null 2>&1 \

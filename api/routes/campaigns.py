@@ -13,6 +13,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
 from sqlalchemy.orm import Session
 
+from api.auth import Caller
 from api.deps import DispatcherDep, SessionDep, TenantDep
 from api.routes.jobs import rerun
 from api.schemas import (
@@ -25,7 +26,7 @@ from api.schemas import (
 )
 from shared.db import crud
 from shared.db.crud import ConflictError
-from shared.db.models import TERMINAL_JOB_STATUSES, Campaign, Job, JobStatus, StageStatus, Tenant
+from shared.db.models import TERMINAL_JOB_STATUSES, Campaign, Job, JobStatus, StageStatus
 
 router = APIRouter(prefix="/campaigns", tags=["campaigns"])
 
@@ -88,7 +89,7 @@ def get_campaign(campaign_id: str, tenant: TenantDep, session: SessionDep) -> Ca
 CampaignDep = Annotated[Campaign, Depends(get_campaign)]
 
 
-def _existing(session: Session, tenant: Tenant, body: CampaignCreate) -> Campaign | None:
+def _existing(session: Session, tenant: Caller, body: CampaignCreate) -> Campaign | None:
     campaign = crud.campaign_by_name(session, tenant.id, body.name)
     if campaign is not None and campaign.max_concurrent != body.max_concurrent:
         raise HTTPException(

@@ -53,7 +53,7 @@ def _check_broker(request: Request) -> None:
 
 def _checks(request: Request) -> dict[str, Callable[[Request], None]]:
     """What readiness needs: the database, the storage, and the broker when jobs go through Celery."""
-    checks = {"database": _check_db, "storage": _check_storage}
+    checks: dict[str, Callable[[Request], None]] = {"database": _check_db, "storage": _check_storage}
     if request.app.state.settings.dispatcher == "celery":
         checks["broker"] = _check_broker
     return checks

@@ -150,7 +150,9 @@ def _check_inputs(session: Session, storage: Storage, project: Project, options:
         if s in cameras:
             continue
         no_focal = [
-            im.name for im in images[s] if "exif_focal_px" in (im.meta or {}) and not im.meta["exif_focal_px"]
+            im.name
+            for im in images[s]
+            if "exif_focal_px" in (im.meta or {}) and not (im.meta or {})["exif_focal_px"]
         ]
         if no_focal:
             raise HTTPException(

@@ -72,11 +72,12 @@ def upload_pos(
     before = crud.pos_digest(session, project.id)
     removed = 0
     if replace:
-        removed = session.execute(
+        deleted = session.execute(
             sa.delete(PosRecordRow).where(
                 PosRecordRow.project_id == project.id, PosRecordRow.image_name.not_in(names_in_file)
             )
-        ).rowcount
+        )
+        removed = getattr(deleted, "rowcount", 0)  # a DELETE's CursorResult
     try:
         stored = crud.add_pos_records(session, project.id, records, source_format=fmt)
     except ValueError as e:

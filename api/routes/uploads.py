@@ -23,7 +23,7 @@ import logging
 import math
 import tempfile
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, BinaryIO, cast
 
 from fastapi import APIRouter, HTTPException, Request, Response, status
 from fastapi import Path as PathParam
@@ -170,7 +170,8 @@ def create_upload(
     log.info("project %s: upload %s of %s started (%d parts)", project.id, upload.id, body.name, part_count)
     out = _out(upload, storage)
     if out.parts_via == "presigned" and part_count <= MAX_PART_URLS:
-        out.part_urls = [_presigned_part(upload, storage, settings, n) for n in range(1, part_count + 1)]
+        urls = [_presigned_part(upload, storage, settings, n) for n in range(1, part_count + 1)]
+        out.part_urls = [u for u in urls if u is not None]
     return out
 
 
@@ -289,7 +290,8 @@ async def upload_part(
             )
         buf.seek(0)
         try:
-            etag = await run_in_threadpool(storage.upload_part, key, storage_upload_id, part_number, buf)
+            part = cast(BinaryIO, buf)
+            etag = await run_in_threadpool(storage.upload_part, key, storage_upload_id, part_number, part)
         except StorageKeyError:
             raise HTTPException(status.HTTP_404_NOT_FOUND, f"upload {upload_id} not found") from None
     return PartOut(part_number=part_number, etag=etag)

@@ -6,6 +6,7 @@ import json
 import logging
 import os
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +38,7 @@ def parse_settings_overrides(
     viewpoints: list[str],
     matching: list[str],
     matcher: str = "aliked-lightglue",
-    rendering: list[str] = (),
+    rendering: Sequence[str] = (),
 ) -> dict[str, dict]:
     """`KEY=VALUE` strings of the 3DGS, viewpoint, matching (the matcher's) and rendering confs -> the
     job settings that override them (services.conf.parse_overrides: ValueError with the reason)."""
@@ -75,6 +76,8 @@ class _File:
 class Folder:
     """A stage's folder of a job (`dir`) and, in subclasses, its named files."""
 
+    dir: Path
+
     def __init__(self, path: Path) -> None:
         self.dir = path
 
@@ -86,46 +89,51 @@ class Folder:
 
 
 class SfmFolder(Folder):
-    sparse = _File("sparse")
-    georef = _File("georef.json")
-    database = _File("database.db")
-    report = _File("report.json")
+    sparse: _File = _File("sparse")
+    georef: _File = _File("georef.json")
+    database: _File = _File("database.db")
+    report: _File = _File("report.json")
 
 
 class SplatFolder(Folder):
-    model = _File("point_cloud.ply")
-    metrics = _File("metrics.json")
-    skipped = _File("skipped.json")
+    model: _File = _File("point_cloud.ply")
+    metrics: _File = _File("metrics.json")
+    skipped: _File = _File("skipped.json")
 
 
 class PlanFolder(Folder):
-    views = _File("views.json")
+    views: _File = _File("views.json")
 
 
 class BlocksFolder(Folder):
-    plan = _File("plan.json")
-    report = _File("report.json")
+    plan: _File = _File("plan.json")
+    report: _File = _File("report.json")
 
 
 class ViewsFolder(Folder):
-    doc = _File("views.json")
+    doc: _File = _File("views.json")
 
 
 class TransferFolder(Folder):
-    matches = _File("matches.h5")
-    ground_poses = _File("ground_poses.json")
-    database = _File("database.db")
-    report = _File("report.json")
+    matches: _File = _File("matches.h5")
+    ground_poses: _File = _File("ground_poses.json")
+    database: _File = _File("database.db")
+    report: _File = _File("report.json")
 
 
 class CombinedFolder(Folder):
-    sparse = _File("sparse")
-    georef = _File("georef.json")
-    report = _File("report.json")
+    sparse: _File = _File("sparse")
+    georef: _File = _File("georef.json")
+    report: _File = _File("report.json")
 
 
 class Job:
     """A job folder: inputs, options, settings and the paths of every stage's files."""
+
+    root: Path
+    inputs: dict[str, Any]
+    options: JobOptions
+    settings: dict[str, Any]
 
     def __init__(self, root: str | Path, inputs: dict, options: JobOptions, settings: dict):
         self.root = Path(root)
@@ -149,7 +157,7 @@ class Job:
         or missing inputs raise before anything is written."""
         root = Path(root)
         opts = options if isinstance(options, JobOptions) else JobOptions.model_validate(options or {})
-        inputs = {
+        inputs: dict[str, Any] = {
             "aerial": str(Path(aerial).resolve()),
             "ground": str(Path(ground).resolve()),
             "pos": str(Path(pos).resolve()),
@@ -358,7 +366,8 @@ class Job:
         if blocks and self.uses_blocks and (self.blocks.report).is_file():
             from services.views import BlockRenderer
 
-            base = BlockRenderer(self.splat.dir, self.blocks.dir, self.settings["splat_backend"], min_alpha)
+            backend = self.settings["splat_backend"]
+            base: Any = BlockRenderer(self.splat.dir, self.blocks.dir, backend, min_alpha)
         else:
             base = views.SplatRenderer(self.splat.dir, self.settings["splat_backend"], min_alpha)
         if conf["colour"] == "source":  # without colour: the planes' depth for the planner's probes

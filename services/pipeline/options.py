@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from services.pipeline.registry import DEFAULT_STAGES, GROUND_STAGES, STAGES
 
-Stage = Literal[STAGES]  # the registry's stage names, in pipeline order
+Stage = Literal[STAGES]  # type: ignore[valid-type]  # the registry's stage names, in pipeline order
 Profile = Literal["cpu", "gpu"]
 
 # each profile's values of the options it sets; the others have one default for every profile
@@ -182,7 +182,7 @@ def option_specs() -> list[dict[str, Any]]:
     """One entry per option: name, type, default (the default profile's), defaults (per profile), help,
     and choices/minimum/maximum where they apply."""
     schema = JobOptions.model_json_schema()
-    by_profile = {p: JobOptions(profile=p).model_dump(mode="json") for p in PROFILES}  # type: ignore[arg-type]
+    by_profile = {p: JobOptions.model_validate({"profile": p}).model_dump(mode="json") for p in PROFILES}
     defaults = by_profile[DEFAULT_PROFILE]
     out = []
     for name, prop in schema["properties"].items():

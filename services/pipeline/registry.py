@@ -55,12 +55,17 @@ def run_fanout(stage: str) -> Callable[[Job, Callable[[float, str], None]], dict
 
     def run(job: Job, report: Callable[[float, str], None]) -> dict:
         fan = REGISTRY[stage].fanout
+        assert fan is not None, f"stage {stage} is not a fan-out"
         set_threads(job)
         report(0.0, "preparing the units")
         fan.prepare(job)
         names = fan.units(job)
         for i, n in enumerate(names):
-            fan.unit(job, n, lambda f, m, i=i: report((i + min(max(f, 0.0), 1.0)) / len(names), m))
+
+            def unit_report(f: float, m: str, i: int = i) -> None:
+                report((i + min(max(f, 0.0), 1.0)) / len(names), m)
+
+            fan.unit(job, n, unit_report)
             report((i + 1) / len(names), f"{n} done ({i + 1}/{len(names)})")
         return fan.finish(job, names)
 

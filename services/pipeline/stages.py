@@ -125,7 +125,7 @@ def train_splat(
             # the chunk ended off the checkpoint grid (the time budget moved the run's end during it):
             # the next chunk resumes from here, not from the last checkpoint before it
             trainer.save_checkpoint()
-        report(done / steps, f"step {done}/{steps}, {len(trainer.splats['means'])} Gaussians")
+        report(done / steps, f"step {done}/{steps}, {trainer.num_gaussians} Gaussians")
     train_s = time.perf_counter() - t0
     trainer.export()
     test = trainer.evaluate() if data.test_ids else {"psnr": float("nan"), "ssim": float("nan"), "n_views": 0}
@@ -133,7 +133,7 @@ def train_splat(
         "steps": trainer.step,
         "steps_planned": int(trainer.conf["steps"]),  # more than "steps" when the time budget cut the run
         "time_budget_s": trainer.conf["time_budget_s"],
-        "num_gaussians": len(trainer.splats["means"]),
+        "num_gaussians": trainer.num_gaussians,
         "backend": trainer.backend,
         "resolution": [data.views[0].width, data.views[0].height],
         "seconds": {"train": train_s},

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -154,7 +155,7 @@ def reduce_report(stats: dict, pairs: dict, poses: dict[str, dict], conf: dict, 
 def main(
     conf: dict | None,
     views_json: str | Path,
-    match_files: list[str | Path],
+    match_files: Sequence[str | Path],
     sparse: str | Path,
     pos: str | Path,
     cameras: str | Path | dict[str, Camera],

@@ -462,7 +462,12 @@ class Trainer:
             self._loop(stop_after, progress)
         finally:
             torch.set_num_threads(n_threads)
-        return {"step": self.step, "num_gaussians": len(self.splats["means"])}
+        return {"step": self.step, "num_gaussians": self.num_gaussians}
+
+    @property
+    def num_gaussians(self) -> int:
+        """Gaussians of the model (0 before it is initialised)."""
+        return 0 if self.splats is None else len(self.splats["means"])
 
     def _loop(self, stop_after: int | None, progress: bool) -> None:
         c = self.conf
@@ -695,7 +700,7 @@ def main(
         train_eval = trainer.evaluate(trainer.data.train_ids[:: max(1, len(trainer.data.train_ids) // 8)])
         metrics = {
             "steps": trainer.step,
-            "num_gaussians": len(trainer.splats["means"]),
+            "num_gaussians": trainer.num_gaussians,
             "backend": trainer.backend,
             "resolution": [data.views[0].width, data.views[0].height],
             "n_train": len(data.train_ids),

@@ -45,7 +45,7 @@ def make_engine(url: str, **kwargs: Any) -> sa.Engine:
     is_file = bool(u.database) and u.database != ":memory:" and not str(u.database).startswith("file:")
     if u.get_backend_name() == "sqlite":
         if is_file:
-            Path(u.database).parent.mkdir(parents=True, exist_ok=True)
+            Path(str(u.database)).parent.mkdir(parents=True, exist_ok=True)
         kwargs.setdefault("connect_args", {}).setdefault("check_same_thread", False)
     else:
         kwargs.setdefault("pool_pre_ping", True)

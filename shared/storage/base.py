@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+import builtins
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -134,7 +135,9 @@ class Storage(abc.ABC):
         """Upload one part through this process; return its ETag."""
 
     @abc.abstractmethod
-    def list_parts(self, key: str, upload_id: str, etags: Mapping[int, str] | None = None) -> list[PartStat]:
+    def list_parts(
+        self, key: str, upload_id: str, etags: Mapping[int, str] | None = None
+    ) -> builtins.list[PartStat]:
         """The parts an unfinished upload has received so far, one per part number (a client that lost
         its ETags resumes from them): the newest, or the one whose ETag `etags` names for its number
         where a part was sent more than once; StorageKeyError when the upload does not exist."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import builtins
 import hashlib
 import json
 import os
@@ -210,7 +211,9 @@ class LocalStorage(Storage):
             raise
         return etag
 
-    def list_parts(self, key: str, upload_id: str, etags: Mapping[int, str] | None = None) -> list[PartStat]:
+    def list_parts(
+        self, key: str, upload_id: str, etags: Mapping[int, str] | None = None
+    ) -> builtins.list[PartStat]:
         """One file per part number: a part sent again replaces the earlier one."""
         folder = self._upload_dir(key, upload_id)
         out = []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import builtins
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -252,7 +253,9 @@ class S3Storage(Storage):
             )
         return r["ETag"].strip('"')
 
-    def list_parts(self, key: str, upload_id: str, etags: Mapping[int, str] | None = None) -> list[PartStat]:
+    def list_parts(
+        self, key: str, upload_id: str, etags: Mapping[int, str] | None = None
+    ) -> builtins.list[PartStat]:
         """The parts received; one per part number (SeaweedFS lists every upload of a part number that
         was sent again, real S3 only the last): the one `etags` names, else the newest (LastModified has
         one-second steps, so two sends within a second tie: name the ETag to be sure)."""
@@ -275,7 +278,9 @@ class S3Storage(Storage):
         validate_key(key)
         if not parts:
             raise ValueError("complete_multipart needs at least one part")
-        listed = [{"PartNumber": check_part_number(n), "ETag": f'"{e.strip(chr(34))}"'} for n, e in parts]
+        listed: builtins.list[dict[str, Any]] = [
+            {"PartNumber": check_part_number(n), "ETag": f'"{e.strip(chr(34))}"'} for n, e in parts
+        ]
         with _errors(f"complete multipart upload {key!r}"):
             self.client.complete_multipart_upload(
                 Bucket=self.bucket,
