@@ -29,8 +29,10 @@ def _counts(summary: dict[str, Any]) -> tuple[dict[str, int], dict[str, int]]:
 
 
 def job_outcome(metrics: dict[str, Any]) -> dict[str, Any]:
-    """{"registered": {set: n}, "images": {set: n}, "result": "ok" | "warnings", "warnings": [...]},
-    from the stage summaries (the combined reconstruction's where it ran, else the aerial SfM's)."""
+    """{"registered": {set: n}, "images": {set: n}, "result": "ok" | "warnings", "warnings": [...],
+    "causes": {cause: n}} from the stage summaries (the combined reconstruction's where it ran, else the
+    aerial SfM's); `causes` counts the named causes of the ground images left out (the combined
+    reconstruction's report: services.sfm.combined.report.CAUSES)."""
     source = next((s for s in ("combined_sfm", "aerial_sfm") if s in metrics), None)
     reg, tot = _counts(metrics.get(source) or {}) if source else ({}, {})
     warnings = []
@@ -48,4 +50,5 @@ def job_outcome(metrics: dict[str, Any]) -> dict[str, Any]:
         "images": tot,
         "result": "warnings" if warnings else "ok",
         "warnings": warnings,
+        "causes": dict((metrics.get(source) or {}).get("causes") or {}) if source == "combined_sfm" else {},
     }

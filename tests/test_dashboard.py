@@ -228,6 +228,17 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     )
     assert "train_splat" in log and "end: succeeded" in log
     assert "ground" in _by(d, "#job-outcome").text
+    # the outcome first: N of M ground images registered, why the others were left out, and an amber
+    # "finished with warnings" where images stayed out
+    shown = d.current_url.split("#/jobs/")[1].split("/")[0]
+    outcome = httpx.get(f"{server}/jobs/{shown}", headers={"Authorization": f"Bearer {KEY}"}).json()[
+        "outcome"
+    ]
+    registered = outcome["registered"].get("ground", 0)
+    assert _by(d, "#job-headline").text.startswith(f"{registered} of 4 ground images registered")
+    left_out = sum(outcome["causes"].values())
+    assert left_out == 4 - registered and (left_out == 0 or "left out" in _by(d, "#job-headline").text)
+    assert _by(d, "#job-result").text == ("finished with warnings" if registered < 4 else "")
     _wait(d, lambda d: len(_all(d, "#artifacts tr.artifact-row")) >= 10, what="the artifacts")
     names = [r[0] for r in d.execute_script(ROWS, "#artifacts tr.artifact-row")]
     assert "combined/gis/cameras.gpkg" in names and "combined/report.json" in names
@@ -274,7 +285,17 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     # its intermediate views (the ground-aware planner renders one per ground image here), loaded
     views_loaded = "return [...document.querySelectorAll('#views img.view-image')].map((i) => i.naturalWidth)"
     widths = _wait(d, lambda d: (w := d.execute_script(views_loaded)) and all(w) and w, 30, "the views")
-    assert len(widths) >= 1 and all(w == 320 for w in widths)
+    assert len(widths) >= 1 and all(w >= 320 for w in widths)  # ground-aware at 320, the paper's wider
+    # every view planned for it is listed: the ground-aware one (its source) and the paper planner's
+    # (which list it among their ground images)
+    auth = {"Authorization": f"Bearer {KEY}"}
+    arts = {a["name"]: a for a in httpx.get(f"{server}/jobs/{job_id}/artifacts", headers=auth).json()}
+    plan_url = arts["views/views.json"]["download_url"]
+    plan = httpx.get(plan_url if plan_url.startswith("http") else server + plan_url, headers=auth).json()
+    name = _by(d, "h1").text
+    mine = [v for v in plan["views"] if v["source"] == name or name in v.get("ground", [])]
+    assert len(widths) == sum(f"views/{v['name']}.png" in arts for v in mine), (name, len(widths), mine)
+    assert {v["planner"] for v in mine} == {"paper", "ground-aware"}, mine
     if _by(d, "#pose-registered").text == "no":
         assert _by(d, "#pose-reason").text
     pairs = _all(d, "#pairs tr.pair-row")
@@ -344,6 +365,7 @@ def test_the_demo_report_is_the_same_page_static_from_the_file_system(browser, s
     assert "combined/report.json" in names and "splat/point_cloud.ply" in names
     report = json.loads((job.dir("combined") / "report.json").read_text())
     assert _by(d, "#job-outcome").text.startswith(f"ground {report['num_registered']['ground']}/4")
+    assert _by(d, "#job-headline").text.startswith(f"{report['num_registered']['ground']} of 4 ground images")
     d.save_screenshot(str(shots / "report-job-1280.png"))
     _by(d, "#map-link").click()
     _wait(d, lambda d: _all(d, "#map circle.cam"), 30, "the report's map")

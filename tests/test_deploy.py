@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 from pathlib import Path
@@ -99,3 +100,33 @@ def test_gpu_dockerfile_installs_what_its_base_ships():
     assert torch < gsplat < project
     compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
     assert compose["services"]["worker-gpu"]["build"]["dockerfile"] == "deploy/Dockerfile.gpu"
+
+
+def test_the_wheel_ships_the_dashboard_with_what_its_import_map_loads(tmp_path):
+    """A wheel (what `pip install .` and the Docker image install) holds the dashboard and the three.js
+    files its import map and modules load, so that the 3D view works outside a dev checkout."""
+    import re
+    import sys
+    import zipfile
+
+    ui = ROOT / "api" / "ui"
+    if not (ui / "node_modules" / "three" / "package.json").is_file() and shutil.which("npm") is None:
+        pytest.skip("three.js is not installed here and there is no npm to install it")
+    pip = [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation"]
+    r = subprocess.run([*pip, "-w", str(tmp_path), str(ROOT)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    (wheel,) = tmp_path.glob("midview-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    index = (ui / "index.html").read_text()
+    imports = json.loads(re.search(r'<script type="importmap">(.*?)</script>', index, re.S).group(1))[
+        "imports"
+    ]
+    three = "api/ui/" + imports["three"].removeprefix("./")
+    addons = "api/ui/" + imports["three/addons/"].removeprefix("./")
+    used = re.findall(r'from "three/addons/([^"]+)"', (ui / "view3d.js").read_text())
+    wanted = {three, "api/ui/index.html", "api/ui/app.js", "api/ui/view3d.js"} | {addons + u for u in used}
+    wanted |= {
+        three.rsplit("/", 1)[0] + "/" + m
+        for m in re.findall(r"from '\./([^']+)'", (ROOT / three).read_text())
+    }
+    assert used and wanted <= names, sorted(wanted - names)

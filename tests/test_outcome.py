@@ -9,11 +9,13 @@ def test_outcome_of_a_job_that_registered_no_ground_image():
         "combined_sfm": {
             "num_registered": {"aerial": 10, "ground": 0},
             "num_images": {"aerial": 10, "ground": 4},
+            "causes": {"views-without-ties": 3, "ambiguous": 1},
         },
     }
     out = job_outcome(m)
     assert out["result"] == "warnings" and out["registered"] == {"aerial": 10, "ground": 0}
     assert out["warnings"] == ["no ground image registered (0 of 4)"]
+    assert out["causes"] == {"views-without-ties": 3, "ambiguous": 1}  # why they were left out
 
 
 def test_outcome_ok_partial_and_aerial_only():

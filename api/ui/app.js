@@ -67,6 +67,18 @@ function outcomeText(o) {
   const a = o.images.aerial !== undefined ? `aerial ${o.registered.aerial || 0}/${o.images.aerial}` : "";
   return [g, a].filter(Boolean).join(", ");
 }
+const CAUSE_WORDS = {  // services.sfm.combined.report.CAUSES, in a few words
+  "no-aerial-view": "views show nothing the aerial images see", "views-without-ties": "views gave no aerial tie",
+  "ties-without-pose": "ties too few for a pose", "chained-to-unregistered": "tied only to unregistered images",
+  "ambiguous": "pose dropped as ambiguous",
+};
+function headline(o) {  // "N of M ground images registered", and why the others were left out
+  if (!o || !o.images || o.images.ground === undefined) return "";
+  const causes = Object.entries(o.causes || {}).map(([c, n]) => `${n} ${CAUSE_WORDS[c] || c}`);
+  return [h("span", { id: "job-registered" }, `${o.registered.ground || 0} of ${o.images.ground} ground images registered`),
+    causes.length ? h("span", { class: "muted", id: "job-causes" }, ` — left out: ${causes.join(", ")}`) : ""];
+}
+const warned = (job) => job.status === "succeeded" && job.outcome && job.outcome.result === "warnings";
 async function authedUrl(path) {  // a blob: URL of an API download (it needs the key)
   if (SNAP) { if (path in SNAP.blobs) return SNAP.blobs[path]; throw new ApiError(404, `not in this report: ${path}`); }
   const r = await api("GET", path, undefined, true);
@@ -334,6 +346,8 @@ async function jobPage(jobId) {
   const project = await api("GET", `/projects/${job.project_id}`);
   jobNav(job, project);
   const status = h("span", { id: "job-status", class: `status ${job.status}` }, job.status);
+  const result = h("span", { id: "job-result", class: "status warnings" });
+  const head = h("h2", { id: "job-headline" });
   const overall = h("progress", { id: "job-progress", max: 100, value: job.progress_percent });
   const pct = h("span", { id: "job-percent" }, `${job.progress_percent.toFixed(0)}%`);
   const stages = h("tbody", { id: "stages" }, stageRows(job));
@@ -350,7 +364,9 @@ async function jobPage(jobId) {
   } }, "Rerun");
   const logLine = (t) => { log.append(`${new Date().toLocaleTimeString()}  ${t}\n`); log.scrollTop = log.scrollHeight; };
   const render = async () => {
-    status.textContent = job.status; status.className = `status ${job.status}`;
+    status.textContent = job.status; status.className = `status ${warned(job) ? "warnings" : job.status}`;
+    result.textContent = warned(job) ? "finished with warnings" : "";
+    head.replaceChildren(...[headline(job.outcome)].flat());
     overall.value = job.progress_percent; pct.textContent = `${job.progress_percent.toFixed(0)}%`;
     stages.replaceChildren(...stageRows(job));
     const final = ["succeeded", "failed", "cancelled"].includes(job.status);
@@ -365,10 +381,10 @@ async function jobPage(jobId) {
     }
   };
   main.replaceChildren(
-    h("h1", {}, `Job ${jobId.slice(0, 8)} of ${project.name}`),
-    SNAP && SNAP.evaluation ? evaluationSection(SNAP.evaluation) : "",
-    h("section", {}, h("div", { class: "row" }, status, pct, SNAP ? "" : [cancel, from, rerun]), h("p"), overall, outcome,
+    h("h1", {}, `Job ${jobId.slice(0, 8)} of ${project.name}`), head,
+    h("section", {}, h("div", { class: "row" }, status, result, pct, SNAP ? "" : [cancel, from, rerun]), h("p"), overall, outcome,
       h("table", {}, h("thead", {}, h("tr", {}, h("th", {}, "stage"), h("th", {}, "status"), h("th", {}, "progress"), h("th", { class: "num" }, "time"), h("th", {}, ""))), stages)),
+    SNAP && SNAP.evaluation ? evaluationSection(SNAP.evaluation) : "",
     h("section", {}, h("h2", {}, "Log"), log),
     h("section", {}, h("h2", {}, "Results"), h("table", {}, arts)));
   await render();
@@ -500,7 +516,9 @@ async function groundPage(jobId, file) {
   pairs.sort((a, b) => (b.num_inliers ?? b.num_matches) - (a.num_inliers ?? a.num_matches));
   // the intermediate views rendered for this ground image (the view planner's record, the rendered PNGs)
   const [plan, arts] = await Promise.all([layerOf(jobId, "views/views.json"), api("GET", `/jobs/${jobId}/artifacts`)]);
-  const mine = plan ? plan.views.filter((v) => v.source === name) : [];
+  // a ground-aware view names its ground image as its source; a paper view (at an aerial station) lists
+  // the ground images it is matched with
+  const mine = plan ? plan.views.filter((v) => v.source === name || (v.ground || []).includes(name)) : [];
   const viewImgs = await Promise.all(mine.map(async (v) => {
     const a = arts.find((x) => x.name === `views/${v.name}.png`);
     if (!a) return null;

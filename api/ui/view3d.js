@@ -71,10 +71,23 @@ export function webglAvailable() {
   catch { return false; }
 }
 
+/** The bulk of n points xyz (3n): {centre: per-axis medians, extent: the 95th percentile of the points'
+ * largest offset from it}, so that a few outliers (floaters, far tie points) do not shrink the model to a
+ * speck; read on at most 20000 points spread over the set. */
+export function bulk(xyz, n) {
+  if (!n) return { centre: [0, 0, 0], extent: 1 };
+  const step = Math.max(1, Math.floor(n / 20000)), idx = [];
+  for (let i = 0; i < n; i += step) idx.push(i);
+  const quantile = (values, q) => { values.sort((a, b) => a - b); return values[Math.min(values.length - 1, Math.floor(q * values.length))]; };
+  const centre = [0, 1, 2].map((k) => quantile(idx.map((i) => xyz[3 * i + k]), 0.5));
+  const offsets = idx.map((i) => Math.max(...[0, 1, 2].map((k) => Math.abs(xyz[3 * i + k] - centre[k]))));
+  return { centre, extent: Math.max(1e-3, quantile(offsets, 0.95)) };
+}
+
 /** Draw points and cameras into `container`; returns a function that stops the rendering. */
 export function draw(container, las, cams) {
   const n = las.count;
-  const centre = [0, 1, 2].map((k) => { let s = 0; for (let i = 0; i < n; i++) s += las.xyz[3 * i + k]; return n ? s / n : 0; });
+  const { centre, extent } = bulk(las.xyz, n);
   const pos = new Float32Array(3 * n);
   for (let i = 0; i < 3 * n; i++) pos[i] = las.xyz[i] - centre[i % 3];
   const scene = new THREE.Scene();
@@ -83,8 +96,6 @@ export function draw(container, las, cams) {
   geom.setAttribute("position", new THREE.BufferAttribute(pos, 3));
   geom.setAttribute("color", new THREE.BufferAttribute(las.rgb, 3));
   scene.add(new THREE.Points(geom, new THREE.PointsMaterial({ size: 2, sizeAttenuation: false, vertexColors: true })));
-  let extent = 1;
-  for (let i = 0; i < 3 * n; i++) extent = Math.max(extent, Math.abs(pos[i]));
   const lines = [], colours = [];
   for (const cam of cams) {
     const c = cam.c.map((x, k) => x - centre[k]);
@@ -115,7 +126,7 @@ export function draw(container, las, cams) {
   let running = true;
   const loop = () => { if (!running) return; controls.update(); renderer.render(scene, camera); requestAnimationFrame(loop); };
   loop();
-  const report = { points: n, cameras: cams.length, aerial: cams.filter((c) => c.set === "aerial").length,
+  const report = { points: n, extent, cameras: cams.length, aerial: cams.filter((c) => c.set === "aerial").length,
     ground: cams.filter((c) => c.set === "ground").length, canvas: renderer.domElement };
   const stop = () => { running = false; renderer.dispose(); };
   stop.report = report;

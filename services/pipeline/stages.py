@@ -368,7 +368,7 @@ def run_combined_sfm(job: Job, report) -> dict:
     set_threads(job)
     combined_reconstruction(job, job.combined.dir, report)
     rep = json.loads((job.combined.report).read_text())
-    keys = ("NRI", "num_registered", "num_images", "num_points3D")
+    keys = ("NRI", "num_registered", "num_images", "num_points3D", "causes")
     return {k: rep[k] for k in keys if k in rep}
 
 
