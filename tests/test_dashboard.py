@@ -204,8 +204,27 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     _wait(d, lambda d: "20 aerial, 4 ground images, 24 POS rows" in _by(d, "#image-counts").text)
     d.save_screenshot(str(shots / "project-1280.png"))
 
-    _by(d, "#job-options").clear()
-    _by(d, "#job-options").send_keys(json.dumps(OPTIONS))
+    # the options form, generated from GET /options: a profile (the workers' preselected), every option
+    # with its profile's default shown, and the fields a 422 names outlined
+    from selenium.webdriver.support.ui import Select
+
+    assert Select(_by(d, "#opt-profile")).first_selected_option.get_attribute("value") == "cpu"
+    assert _by(d, "#opt-splat-steps").get_attribute("placeholder") == "3000"
+    Select(_by(d, "#opt-profile")).select_by_value("gpu")
+    assert _by(d, "#opt-splat-steps").get_attribute("placeholder") == "7000"
+    Select(_by(d, "#opt-profile")).select_by_value("cpu")
+    d.execute_script("document.querySelectorAll('#job-form details').forEach((e) => { e.open = true; })")
+    _by(d, "#opt-views-per-ground-image").send_keys("0")
+    _by(d, "#start-job").click()
+    _wait(d, lambda d: "views_per_ground_image" in _by(d, "#toast").text, what="the option's error")
+    assert "bad-field" in _by(d, "#opt-views-per-ground-image").get_attribute("class")
+    for name, value in OPTIONS.items():
+        field = _by(d, "#opt-" + name.replace("_", "-"))
+        if field.tag_name == "select":
+            Select(field).select_by_value(str(value))
+        else:
+            field.clear()
+            field.send_keys(str(value))
     _by(d, "#start-job").click()
     _wait(d, lambda d: "#/jobs/" in d.current_url and _by(d, "#job-status"), what="the job page")
     job_url = d.current_url
@@ -315,9 +334,9 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
         inner = d.execute_script("return window.innerWidth")
         assert width <= inner + 1, (shot, width, inner)
         d.save_screenshot(str(shots / shot))
-    # no script error, and no failed request but the two the test made on purpose (the wrong key's 401 on
-    # /projects, the bad POS file's 422)
-    unexpected = _console_errors(d, [("/projects -", "401"), ("/pos -", "422")])
+    # no script error, and no failed request but those the test made on purpose (the wrong key's 401 on
+    # /projects, the bad POS file's 422, the job with an option out of its range)
+    unexpected = _console_errors(d, [("/projects -", "401"), ("/pos -", "422"), ("/jobs -", "422")])
     assert unexpected == [], unexpected
 
 

@@ -36,9 +36,11 @@ function detail(body) {
   const d = body && body.detail !== undefined ? body.detail : body;
   if (typeof d === "string") return d;
   if (d && d.message) return d.message + (d.errors ? ": " + d.errors.slice(0, 5).join("; ") : "");
-  if (Array.isArray(d)) return d.map((e) => e.msg || JSON.stringify(e)).join("; ");
+  if (Array.isArray(d)) return d.map((e) => (fieldOf(e) ? `${fieldOf(e)}: ` : "") + (e.msg || JSON.stringify(e))).join("; ");
   return JSON.stringify(d);
 }
+// the field a 422 error is about: the last name of its location past "body" and "options"
+function fieldOf(e) { return (e.loc || []).filter((x) => !["body", "options", "query", "path"].includes(x)).join("."); }
 class ApiError extends Error { constructor(status, body) { super(detail(body)); this.status = status; this.body = body; } }
 async function snapshotAnswer(method, path, raw) {  // a static report's recorded answer
   const p = path.split("?")[0];
@@ -239,6 +241,62 @@ function uploader(pid, set, onDone) {
     h("table", { id: `${set}-uploads` }, list));
 }
 
+// -- the job options form (GET /options: profiles, each option's default per profile, its help) ----------
+async function optionsForm() {
+  const spec = await api("GET", "/options");
+  const offered = (spec.profiles.find((p) => p.offered) || spec.profiles[0]).name;
+  const profile = h("select", { id: "opt-profile" }, spec.profiles.map((p) =>
+    h("option", { value: p.name, selected: p.name === offered }, `${p.name}${p.offered ? " (this service's workers)" : ""}`)));
+  const profileHelp = h("p", { class: "muted", id: "opt-profile-help" });
+  const fields = {}, rows = [];
+  const stagesSpec = spec.options.find((o) => o.name === "stages");
+  const stageBoxes = stagesSpec.choices.map((st) => h("label", { class: "stage-choice" },
+    h("input", { type: "checkbox", id: `opt-stage-${st}`, value: st, checked: stagesSpec.default.includes(st) }), ` ${st} `));
+  for (const o of spec.options) {
+    if (o.name === "stages" || o.name === "profile") continue;
+    const id = `opt-${o.name.replaceAll("_", "-")}`;
+    const input = o.choices
+      ? h("select", { id }, h("option", { value: "" }, "(profile's)"), o.choices.map((c) => h("option", { value: c }, c)))
+      : h("input", { id, type: o.type.startsWith("integer") || o.type.startsWith("number") ? "number" : "text",
+        min: o.minimum, max: o.maximum, step: o.type.startsWith("integer") ? 1 : "any" });
+    fields[o.name] = { input, spec: o };
+    rows.push(h("tr", { class: "option-row" }, h("th", {}, h("label", { for: id }, o.name)), h("td", {}, input),
+      h("td", { class: "muted hide-phone" }, o.help)));
+  }
+  const showDefaults = () => {
+    const p = spec.profiles.find((x) => x.name === profile.value);
+    profileHelp.textContent = p ? p.help : "";
+    for (const { input, spec: o } of Object.values(fields)) {
+      const d = o.defaults[profile.value];
+      if (input.tagName === "SELECT") input.options[0].textContent = `${d} (profile's)`;
+      else input.placeholder = d === null ? "none" : String(d);
+    }
+  };
+  profile.addEventListener("change", showDefaults);
+  showDefaults();
+  const advanced = h("textarea", { id: "job-options", spellcheck: "false" }, "{}");
+  const read = () => {  // the options given: the profile, the stages ticked, the fields filled, then the JSON
+    const out = { profile: profile.value, stages: stageBoxes.map((l) => l.firstChild).filter((c) => c.checked).map((c) => c.value) };
+    for (const [name, { input, spec: o }] of Object.entries(fields)) {
+      input.classList.remove("bad-field");
+      if (input.value === "") continue;
+      out[name] = o.type.startsWith("integer") ? parseInt(input.value, 10) : o.type.startsWith("number") ? Number(input.value) : input.value;
+    }
+    return { ...out, ...JSON.parse(advanced.value || "{}") };
+  };
+  const mark = (x) => {  // outline the fields a 422 names
+    for (const e of (x.body && Array.isArray(x.body.detail) ? x.body.detail : [])) {
+      const f = fields[fieldOf(e).split(".")[0]];
+      if (f) f.input.classList.add("bad-field");
+    }
+  };
+  const form = h("div", { id: "job-form" }, h("p", {}, h("label", { for: "opt-profile" }, "profile "), profile), profileHelp,
+    h("p", { id: "opt-stages" }, "stages: ", stageBoxes),
+    h("details", {}, h("summary", {}, "options"), h("table", { id: "options" }, h("tbody", {}, rows))),
+    h("details", {}, h("summary", {}, "more options as JSON"), advanced));
+  return { form, read, mark };
+}
+
 // -- a project ---------------------------------------------------------------------------------------
 async function projectPage(pid) {
   const p = await api("GET", `/projects/${pid}`);
@@ -267,12 +325,12 @@ async function projectPage(pid) {
     try { await api("PUT", `/projects/${pid}/cameras`, JSON.parse(await camInput.files[0].text())); toast("cameras.json stored"); }
     catch (x) { toast(`cameras.json: ${x.message}`); }
   } });
-  const options = h("textarea", { id: "job-options", spellcheck: "false" }, "{}");
+  const jobForm = SNAP ? null : await optionsForm();
   const start = h("button", { id: "start-job", onclick: async () => {
     try {
-      const job = await api("POST", `/projects/${pid}/jobs`, { options: JSON.parse(options.value || "{}") });
+      const job = await api("POST", `/projects/${pid}/jobs`, { options: jobForm.read() });
       location.hash = `#/jobs/${job.id}`;
-    } catch (x) { toast(`job: ${x.message}`); }
+    } catch (x) { jobForm.mark(x); toast(`job: ${x.message}`); }
   } }, "Start job");
   main.replaceChildren(
     h("h1", {}, p.name), counts,
@@ -280,7 +338,7 @@ async function projectPage(pid) {
     h("section", { class: "grid2" },
       h("div", {}, h("h2", {}, "POS"), h("p", { class: "muted" }, "CSV, ODM geo.txt or JSON; every row is checked before it is stored"), posInput, posResult),
       h("div", {}, h("h2", {}, "Intrinsics"), h("p", { class: "muted" }, "cameras.json (optional with EXIF focal lengths)"), camInput)),
-    h("section", {}, h("h2", {}, "New job"), h("p", { class: "muted" }, "job options as JSON (GET /options lists them)"), options, h("p"), start)]),
+    h("section", {}, h("h2", {}, "New job"), jobForm.form, h("p"), start)]),
     h("section", {}, h("h2", {}, "Jobs"), h("table", { id: "jobs" }, h("tbody", {}, jobs.map((j) => h("tr", {},
       h("td", {}, h("a", { href: `#/jobs/${j.id}` }, j.id.slice(0, 8))), h("td", { class: `status ${j.status}` }, j.status),
       h("td", {}, outcomeText(j.outcome)), h("td", { class: "muted hide-phone" }, new Date(j.created_at).toLocaleString())))))));
