@@ -358,11 +358,24 @@ class OptionSpec(BaseModel):
     maximum: float | None = None
 
 
+class EstimateOut(BaseModel):
+    aerial: int
+    ground: int
+    stages_s: dict[str, float | None] = Field(description="Seconds per stage (None: not measured)")
+    total_s: float | None
+    relative_error: dict[str, float | None] = Field(
+        description="The cost model's leave-one-out relative error on its timed runs (median, max)"
+    )
+
+
 class ProfileOut(BaseModel):
     name: str
     help: str
     options: dict[str, Any] = Field(description="The options this profile sets")
     offered: bool = Field(description="This service's workers run it: a job that names no profile gets it")
+    estimate: EstimateOut | None = Field(
+        None, description="Its default job's time on a survey of ?aerial=&ground= images (2 CPU cores)"
+    )
 
 
 class OptionsOut(BaseModel):

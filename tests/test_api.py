@@ -541,6 +541,23 @@ def test_job_options_listing(api_env) -> None:
     assert opts["seed"]["defaults"] == {"cpu": 0, "gpu": 0}
 
 
+def test_options_estimate_each_profiles_time_for_a_survey(api_env) -> None:
+    """GET /options?aerial=&ground=: the cost model's seconds per stage of each profile's default job
+    (services.pipeline.costs, fitted on bench/pipeline_time.py's runs on 2 cores) with its error; the gpu
+    profile was never timed: no figure rather than a made-up one."""
+    from services.pipeline import JobOptions, costs
+
+    small = api_env.client.get("/options?aerial=20&ground=10").json()["profiles"]
+    large = api_env.client.get("/options?aerial=200&ground=100").json()["profiles"]
+    cpu_small, cpu_large = (next(p["estimate"] for p in ps if p["name"] == "cpu") for ps in (small, large))
+    assert cpu_small["stages_s"] == costs.estimate(JobOptions(), 20, 10)["stages_s"]
+    assert cpu_small["total_s"] > 0 and cpu_large["total_s"] > cpu_small["total_s"]
+    assert cpu_small["relative_error"]["median"] is not None
+    assert next(p["estimate"] for p in small if p["name"] == "gpu")["total_s"] is None
+    assert all(p["estimate"] is None for p in api_env.client.get("/options").json()["profiles"])
+    assert api_env.client.get("/options?aerial=-1&ground=3").status_code == 422
+
+
 def test_a_job_takes_its_profile_from_the_workers_unless_it_names_one(api_env, make_jpeg) -> None:
     """No profile named: the one the workers offer (cpu on the embedded worker, gpu where a gsplat worker
     serves the gpu queue); named: that one; an option given explicitly wins over either profile."""

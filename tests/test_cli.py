@@ -168,13 +168,22 @@ def test_demo_rejects_a_negative_time_budget(tmp_path):
 def test_run_and_demo_take_every_job_option_from_the_model(tiny_scene, tmp_path):
     """A flag per JobOptions field with each profile's default in its help; a flag not given leaves the
     option to --profile (cpu by default), a flag given wins."""
-    from services.pipeline import PROFILES, JobOptions
+    from services.pipeline import JobOptions
 
     for command in ("run", "demo"):
         text = runner.invoke(app, [command, "--help"], env={"COLUMNS": "400"}).output
         for name in set(JobOptions.model_fields) - {"stages"} - ({"seed"} if command == "demo" else set()):
             assert "--" + name.replace("_", "-") in text, (command, name)
-        assert f"defaults cpu {PROFILES['cpu']['splat_steps']}, gpu {PROFILES['gpu']['splat_steps']}" in text
+        # the same defaults per profile as GET /options (option_specs): one declaration
+        from services.pipeline import option_specs
+
+        flat = " ".join(text.split())
+        for spec in option_specs():
+            values = set(map(str, spec["defaults"].values()))
+            if spec["name"] in ("stages", "profile") or len(values) == 1:
+                continue
+            shown = ", ".join(f"{p} {v}" for p, v in spec["defaults"].items())
+            assert f"defaults {shown}" in flat, (command, spec["name"], shown)
     images = tiny_scene / "images"
     base = ["run", str(images / "aerial"), str(images / "ground"), str(tiny_scene / "pos.csv")]
     for profile, extra in (

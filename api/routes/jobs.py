@@ -22,6 +22,7 @@ from api.deps import (
 )
 from api.events import job_events
 from api.schemas import (
+    EstimateOut,
     JobCreate,
     JobDetail,
     JobOut,
@@ -32,7 +33,7 @@ from api.schemas import (
     StageRunOut,
 )
 from api.status_cache import Entry
-from services.pipeline import PROFILE_HELP, PROFILES, JobOptions, option_specs
+from services.pipeline import PROFILE_HELP, PROFILES, JobOptions, costs, option_specs
 from shared.db import crud
 from shared.db.crud import ConflictError
 from shared.db.models import Job, JobStatus, Project
@@ -78,14 +79,26 @@ def job_detail(job: Any, stage_runs: list[Any] | None = None) -> JobDetail:
 
 
 @router.get("/options", response_model=OptionsOut, summary="Job options with types, defaults and help")
-def list_options(dispatcher: DispatcherDep) -> OptionsOut:
+def list_options(
+    dispatcher: DispatcherDep,
+    aerial: Annotated[int | None, Query(ge=0, le=1_000_000, description="Aerial images of a survey")] = None,
+    ground: Annotated[int | None, Query(ge=0, le=1_000_000, description="Ground images of a survey")] = None,
+) -> OptionsOut:
     """The profiles (whose defaults a job takes; `offered`: the one a job that names none gets here) and
-    every option with its type, default per profile and help."""
+    every option with its type, default per profile and help; with `aerial` and `ground`, each profile's
+    estimated seconds per stage for a survey of that size (services.pipeline.costs)."""
     offered = offered_profile(dispatcher)
-    profiles = [
-        ProfileOut(name=name, help=PROFILE_HELP[name], options=values, offered=name == offered)
-        for name, values in PROFILES.items()
-    ]
+    profiles = []
+    for name, values in PROFILES.items():
+        estimate = None
+        if aerial is not None and ground is not None:
+            options = JobOptions.model_validate({"profile": name})
+            estimate = EstimateOut(aerial=aerial, ground=ground, **costs.estimate(options, aerial, ground))
+        profiles.append(
+            ProfileOut(
+                name=name, help=PROFILE_HELP[name], options=values, offered=name == offered, estimate=estimate
+            )
+        )
     return OptionsOut(
         profiles=profiles,
         options=[OptionSpec(**s) for s in option_specs()],

@@ -1,0 +1,109 @@
+"""How long a job takes: a cost model per stage, fitted on the timed runs of `bench/pipeline_time.py`
+(docs/results/pipeline-time.json, every default stage of `midview run` alone on a 2-core machine).
+
+Each stage costs `seconds_per_unit x units`, its units counted from the survey and the options: the
+aerial SfM per aerial image, the 3DGS per training step (at most its time budget), the views' planning,
+rendering, matching and reduction per planned view (ground images x views per ground image x planners),
+the combined reconstruction per ground image. FIT holds the fitted seconds per unit with the fit's
+leave-one-out relative error (`bench/pipeline_time.py --fit` prints it; tests/test_costs.py checks it
+against the results file). Measured for the `cpu` profile only: no GPU machine timed the `gpu` profile,
+so its estimate is None.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from services.pipeline.options import JobOptions
+
+# seconds per unit of each stage on 2 CPU cores (cpu profile) and the fit's leave-one-out relative error
+# (median, max over the runs): bench/pipeline_time.py --fit on docs/results/pipeline-time.json
+FIT: dict[str, Any] = {
+    "seconds_per_unit": {},
+    "relative_error": {"median": None, "max": None},
+    "runs": 0,
+}
+PROFILES_MEASURED = ("cpu",)
+
+
+def units(options: JobOptions, n_aerial: int, n_ground: int) -> dict[str, float]:
+    """The units of each default stage of a job on a survey of n_aerial and n_ground images."""
+    planners = 2 if options.view_planner == "both" else 1
+    views = float(n_ground * options.views_per_ground_image * planners)
+    return {
+        "aerial_sfm": float(n_aerial),
+        "train_splat": float(options.splat_steps),
+        "plan_views": views,
+        "train_blocks": 0.0 if options.block_steps == 0 else float(options.block_steps),
+        "render_views": views,
+        "match_views": views,
+        "reduce": views,
+        "combined_sfm": float(n_ground),
+    }
+
+
+def estimate(
+    options: JobOptions, n_aerial: int, n_ground: int, fit: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """{"stages_s": {stage: seconds or None}, "total_s": seconds or None, "relative_error": {median, max}}
+    for the job's stages; None where the model has no measurement (another profile, a stage not fitted)."""
+    fit = fit or FIT
+    per_unit = fit["seconds_per_unit"] if options.profile in PROFILES_MEASURED else {}
+    stages: dict[str, float | None] = {}
+    for stage, n in units(options, n_aerial, n_ground).items():
+        if stage not in options.stages:
+            continue
+        if n == 0:
+            stages[stage] = 0.0
+        elif stage in per_unit:
+            seconds = per_unit[stage] * n
+            if stage == "train_splat" and options.splat_time_budget_s is not None:
+                seconds = min(seconds, float(options.splat_time_budget_s))
+            stages[stage] = round(seconds, 1)
+        else:
+            stages[stage] = None
+    known = [s for s in stages.values() if s is not None]
+    total = round(sum(known), 1) if known and len(known) == len(stages) else None
+    return {"stages_s": stages, "total_s": total, "relative_error": dict(fit["relative_error"])}
+
+
+def fit_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """FIT from timed runs ({"survey": {aerial, ground}, "options": JobOptions fields, "stages_s"}): per
+    stage the least-squares seconds per unit through the origin; the error of predicting each run's
+    total from the others (leave-one-out)."""
+
+    def per_unit(rs: list[dict[str, Any]]) -> dict[str, float]:
+        out = {}
+        for stage in units(JobOptions(), 1, 1):
+            pairs = []
+            for r in rs:
+                opts = JobOptions.model_validate(r["options"])
+                n = units(opts, r["survey"]["aerial"], r["survey"]["ground"])[stage]
+                s = r["stages_s"].get(stage)
+                budget = opts.splat_time_budget_s
+                if s is None or n == 0 or (stage == "train_splat" and budget and s >= 0.95 * budget):
+                    continue  # a 3DGS stopped by its budget says nothing of its pace
+                pairs.append((n, float(s)))
+            if pairs:
+                out[stage] = round(sum(n * s for n, s in pairs) / sum(n * n for n, _ in pairs), 4)
+        return out
+
+    errors = []
+    for i, r in enumerate(runs):
+        rest = runs[:i] + runs[i + 1 :]
+        if not rest:
+            continue
+        opts = JobOptions.model_validate(r["options"])
+        pred = estimate(opts, r["survey"]["aerial"], r["survey"]["ground"],
+                        {"seconds_per_unit": per_unit(rest), "relative_error": {}})  # fmt: skip
+        if pred["total_s"]:
+            errors.append(abs(pred["total_s"] / sum(r["stages_s"].values()) - 1.0))
+    errors.sort()
+    return {
+        "seconds_per_unit": per_unit(runs),
+        "relative_error": {
+            "median": round(errors[len(errors) // 2], 3) if errors else None,
+            "max": round(errors[-1], 3) if errors else None,
+        },
+        "runs": len(runs),
+    }
