@@ -87,3 +87,49 @@ def test_unrelated_matches_are_rejected(street):
     m = np.stack([np.arange(len(uv0)), rng.permutation(len(uv0))], 1)  # no true correspondence
     inl, rec = verify_ground_pair(uv0, uv1, m, CAM, pose0, pose1, STD, STD, CONF)
     assert not rec["accepted"] and len(inl) == 0
+
+
+class _Wall:
+    """A plane proxy of one facade, the plane y = 20 (x in [-60, 100], z in [0, 15]), ray cast exactly."""
+
+    planes = [object()]
+
+    def depth(self, camera: Camera, pose: Pose) -> np.ndarray:
+        v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+        uv = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1).astype(float)
+        rays = pose.unproject(camera.K, uv, np.ones(len(uv))) - pose.center  # world rays of z-depth 1
+        s = (20.0 - pose.center[1]) / np.where(np.abs(rays[:, 1]) < 1e-9, np.nan, rays[:, 1])
+        X = pose.center + rays * s[:, None]
+        hit = (s > 0) & (X[:, 0] > -60) & (X[:, 0] < 100) & (X[:, 2] > 0) & (X[:, 2] < 15)
+        return np.where(hit, s, 0.0).reshape(camera.height, camera.width)
+
+
+def test_a_repeated_facade_pair_is_not_verified_against_the_aerial_surface():
+    """Two walls with the same texture 40 m apart along a street: the second camera sees the copy from
+    where the first would see the original from 8 m further on, so their matches give the essential
+    matrix and the relative pose of a true pair (rotation and baseline direction agree with the POS). On
+    the aerial surface the matches place the second camera 40 m from its POS: the pair is refused; the
+    true pair (the second camera 8 m on, seeing the same wall) is kept."""
+    from services.sfm.combined import SurfaceCheck, surface_conf, verify_ground_pair
+
+    rng = np.random.default_rng(5)
+    X = np.stack([rng.uniform(-10, 20, 400), 20.0 + rng.normal(0, 0.15, 400), rng.uniform(0.5, 12, 400)], 1)
+    pose0 = look_at(np.array([0.0, 0.0, 1.8]), np.array([2.0, 20.0, 5.0]))
+    near = look_at(np.array([8.0, 0.0, 1.7]), np.array([10.0, 20.0, 5.0]))  # sees X itself
+    far = look_at(np.array([48.0, 0.0, 1.7]), np.array([50.0, 20.0, 5.0]))  # sees the copy X + 40 m
+    uv0, z0 = pose0.project(CAM.K, X)
+    uv1, z1 = near.project(CAM.K, X)  # = far's pixels of the copy: the same images of the texture
+    inside = (z0 > 0) & (z1 > 0)
+    for uv in (uv0, uv1):
+        inside &= (uv[:, 0] >= 0) & (uv[:, 0] < CAM.width) & (uv[:, 1] >= 0) & (uv[:, 1] < CAM.height)
+    uv0 = uv0[inside] + rng.normal(0, 0.5, (inside.sum(), 2))
+    uv1 = uv1[inside] + rng.normal(0, 0.5, (inside.sum(), 2))
+    m = np.stack([np.arange(len(uv0))] * 2, 1)
+    check = SurfaceCheck(_Wall(), CAM, surface_conf)
+    for second, kept in ((near, True), (far, False)):
+        inl, rec = verify_ground_pair(uv0, uv1, m, CAM, pose0, second, STD, STD, CONF)
+        assert rec["accepted"] and len(inl) > 0.9 * len(uv0), rec  # the essential matrix and the POS agree
+        s = check("ground/G0", uv0[inl[:, 0]], uv1[inl[:, 1]], pose0, second, STD, STD)
+        assert s["accepted"] is kept, s
+        if not kept:
+            assert s["offset_m"] > 35 and "from its POS" in s["reason"], s

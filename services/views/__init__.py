@@ -53,6 +53,7 @@ from services.views.ground_aware import (
 )
 from services.views.paper import plan_paper, select_paper
 from services.views.planning import NoViews, cover_aerial, plan
+from services.views.proxy import PlaneProxy
 from services.views.rays import paper_viewpoint, ray_plane, ray_target_points
 from services.views.rendering import (
     BlockRenderer,
@@ -68,6 +69,7 @@ from services.views.scene import Scene, load_scene, place_ground_on_terrain, sce
 from services.views.specs import ViewSpec, read_views, summary, write_views
 
 __all__ = [
+    "PlaneProxy",
     "BlockRenderer",
     "GroundTruthRenderer",
     "NoViews",

@@ -62,6 +62,8 @@ from services.sfm.combined.model import (
     seed_tracks,
 )
 from services.sfm.combined.report import build_report, write_gis
+from services.sfm.combined.surface import SurfaceCheck
+from services.sfm.combined.surface import default_conf as surface_conf
 from shared.logging import stage
 
 logger = logging.getLogger("midview.combined_sfm")
@@ -70,6 +72,8 @@ confs = {"default": default_conf}
 
 __all__ = [
     "CombinedDatabase",
+    "SurfaceCheck",
+    "surface_conf",
     "seed_tracks",
     "write_ground",
     "write_pair",

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from services.sfm.combined.surface import default_conf as surface_conf
+
 default_conf: dict[str, Any] = {
     "ground_pairs": {
         # each ground image with its nearest ground images (POS; 4 left small-walk one image fewer and its
@@ -21,6 +23,9 @@ default_conf: dict[str, Any] = {
         "min_rotation_deg": 10.0,
         "min_direction_deg": 15.0,
         "seed": 0,
+        # ... and whose matches fit the scene: lifted onto the aerial surface from the first image's POS,
+        # they must place the second camera by PnP where its POS says (services.sfm.combined.surface)
+        "surface": dict(surface_conf),
     },
     "seed_points": True,  # 3D points of the transferred tracks in the input model
     # ground images with an accepted PnP pose start registered, held at that pose ... (off: the mapper

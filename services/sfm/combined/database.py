@@ -16,6 +16,7 @@ import numpy as np
 import pycolmap
 
 from services.colmap_model import Camera, Pose
+from services.sfm.combined.surface import SurfaceCheck
 
 logger = logging.getLogger("midview.combined_sfm")
 
@@ -285,6 +286,20 @@ def _write_aerial_ground(
         cdb.ag.append((a, g, m))
 
 
+def surface_check(aerial_dir: Path, camera: Camera, conf: dict) -> SurfaceCheck | None:
+    """The check of ground pairs against the aerial surface (conf["surface"]), None when it is off or the
+    aerial model holds no plane to check against."""
+    from services.views import PlaneProxy
+
+    if not conf.get("surface", {}).get("enabled"):
+        return None
+    proxy = PlaneProxy.from_model(aerial_dir / "sparse")
+    if not proxy.planes:
+        logger.warning("ground pairs: the aerial model holds no plane; not checked against its surface")
+        return None
+    return SurfaceCheck(proxy, camera, conf["surface"])
+
+
 def _write_ground_ground(
     db: pycolmap.Database,
     cdb: CombinedDatabase,
@@ -295,8 +310,10 @@ def _write_ground_ground(
     match_conf: dict,
     conf: dict,
     prog,
+    surface: SurfaceCheck | None = None,
 ) -> int:
-    """Ground pairs from the POS, matched and verified (verify_ground_pair); the number written."""
+    """Ground pairs from the POS, matched and verified (verify_ground_pair, then against the aerial
+    surface when `surface` is given); the number written."""
     from services.matching import match_features
 
     gp = ground_pairs(priors, sorted(g_feats), conf)
@@ -307,6 +324,13 @@ def _write_ground_ground(
         inl, rec = verify_ground_pair(
             f0, f1, mm, camera, priors[g0], priors[g1], prior_std[g0], prior_std[g1], conf
         )
+        if len(inl) and surface is not None:
+            p0 = np.asarray(f0, np.float64)[inl[:, 0], :2]
+            p1 = np.asarray(f1, np.float64)[inl[:, 1], :2]
+            rec["surface"] = surface(g0, p0, p1, priors[g0], priors[g1], prior_std[g0], prior_std[g1])
+            if not rec["surface"]["accepted"]:
+                rec.update(accepted=False, reason=f"against the aerial surface: {rec['surface']['reason']}")
+                inl = inl[:0]
         cdb.ground_pairs[f"{g0} {g1}"] = rec
         if len(inl):
             write_pair(db, cdb.ids[g0], cdb.ids[g1], inl, cdb.pair_sizes, True, rec.get("cam2_from_cam1"))
@@ -357,7 +381,9 @@ def build_database(
         ids.update(_write_ground_images(db, ground_camera, g_feats, priors, prior_std))
         _write_aerial_ground(db, cdb, t_pairs, t_kps, g_feats)
         args = (g_feats, ground_camera, priors, prior_std, match_conf, conf["ground_pairs"], prog)
-        n_gg = _write_ground_ground(db, cdb, *args)
+        n_gg = _write_ground_ground(
+            db, cdb, *args, surface_check(aerial_dir, ground_camera, conf["ground_pairs"])
+        )
     finally:
         db.close()
     logger.info(
