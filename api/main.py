@@ -20,6 +20,7 @@ from api.auth import KeyCache
 from api.bootstrap import ensure_api_key
 from api.config import ApiSettings
 from api.errors import install_error_handlers
+from api.events import JobWatch
 from api.gcwatch import GcWatch
 from api.middleware import (
     BodyLimitMiddleware,
@@ -139,6 +140,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.rate_limiter = make_rate_limiter(settings)
     app.state.key_cache = KeyCache(settings.auth_cache_s)
     app.state.status_cache = StatusCache(settings.status_cache_s)
+    app.state.job_watch = JobWatch(app.state.sessionmaker, settings.events_poll_s)
     app.state.verifier = Verifier(
         app.state.write_sessionmaker,
         app.state.sessionmaker,

@@ -92,6 +92,42 @@ def test_event_stream_follows_the_job_to_its_end(api_env, make_jpeg) -> None:
     assert [name for name, _ in events] == ["progress", "end"]
 
 
+def test_event_streams_share_one_poll_of_the_database(api_env, make_jpeg) -> None:
+    """200 streams of 4 jobs (api.events.JobWatch): one query per poll for all of them, not one per
+    stream, and a change reaches every stream of its job within a poll."""
+    import asyncio
+
+    from api.events import JobWatch
+
+    t = api_env.tenant()
+    jobs = [_job(api_env, t, make_jpeg)[1] for _ in range(4)]
+    watch = JobWatch(api_env.app.state.sessionmaker, poll_s=0.05)
+
+    async def follower(job_id: str, seen: list) -> None:
+        async for snap in watch.follow(job_id, 1.0):
+            seen.append(snap["status"])
+            if snap["status"] == "running":
+                return
+
+    async def burst() -> tuple[list[list[str]], int, float]:
+        seens: list[list[str]] = [[] for _ in range(200)]
+        tasks = [asyncio.create_task(follower(jobs[i % 4], seens[i])) for i in range(200)]
+        await asyncio.sleep(0.5)
+        polls_before = watch.polls
+        with api_env.session() as s:
+            for job_id in jobs:
+                crud.set_job_status(s, job_id, JobStatus.running)
+            s.commit()
+        t0 = time.monotonic()
+        await asyncio.wait_for(asyncio.gather(*tasks), 10)
+        return seens, polls_before, time.monotonic() - t0
+
+    seens, polls, took = asyncio.run(burst())
+    assert all(seen[0] == "queued" and seen[-1] == "running" for seen in seens)
+    assert polls <= 0.5 / 0.05 + 2  # one query per poll for the 200 streams (their first reads aside)
+    assert took < 2.0, took
+
+
 def test_artifact_listing_and_downloads(api_env, make_jpeg) -> None:
     c, t = api_env.client, api_env.tenant()
     pid, jid = _job(api_env, t, make_jpeg)

@@ -318,9 +318,8 @@ def job_event_stream(
     session.close()  # the stream polls with its own short sessions; hold no connection meanwhile
     cache, job_id = request.app.state.status_cache, job.id
     stream = job_events(
-        request.app.state.sessionmaker,
+        request.app.state.job_watch,
         job_id,
-        settings.events_poll_s,
         settings.events_heartbeat_s,
         on_change=lambda: cache.forget(job_id),
     )
