@@ -292,6 +292,68 @@ async def hammer(base: str, path: str, headers: dict[str, str], clients: int, n:
     return {"p50": q[49] * 1e3, "p99": q[98] * 1e3, "rps": len(latencies) / wall, "errors": errors}
 
 
+async def burst(
+    base: str, hot: dict[str, str], other: dict[str, str], paths: dict[str, str], n: int, seconds: float
+) -> dict[str, Any]:
+    """One key's burst of n simultaneous requests, half of them event streams held `seconds`, half
+    project reads, while another tenant reads its project and a probe reads /healthz every 50 ms:
+    the other tenant's and healthz's p99, and the burst's answers by status (5xx must be none)."""
+    import anyio
+    import httpx
+
+    codes: dict[int, int] = {}
+    seen: dict[str, list[float]] = {"other": [], "healthz": []}
+    other_5xx = 0
+
+    async def one(client: httpx.AsyncClient, i: int) -> None:
+        try:
+            if i % 2:
+                async with client.stream("GET", paths["events"], headers=hot) as r:
+                    codes[r.status_code] = codes.get(r.status_code, 0) + 1
+                    if r.status_code == 200:
+                        with anyio.move_on_after(seconds):
+                            async for _ in r.aiter_lines():
+                                pass
+            else:
+                r = await client.get(paths["project"], headers=hot)
+                codes[r.status_code] = codes.get(r.status_code, 0) + 1
+        except httpx.HTTPError:
+            codes[-1] = codes.get(-1, 0) + 1
+
+    async def probe(client: httpx.AsyncClient, name: str, path: str, headers: dict[str, str]) -> None:
+        nonlocal other_5xx
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            t0 = time.perf_counter()
+            r = await client.get(path, headers=headers)
+            seen[name].append((time.perf_counter() - t0) * 1e3)
+            other_5xx += r.status_code >= 500
+            await asyncio.sleep(0.05)
+
+    limits = httpx.Limits(max_connections=n + 10, max_keepalive_connections=n + 10)
+    async with (
+        httpx.AsyncClient(base_url=base, timeout=120, limits=limits) as hot_client,
+        httpx.AsyncClient(base_url=base, timeout=120) as probe_client,
+    ):
+        await probe_client.get("/healthz")
+        await asyncio.gather(
+            *(one(hot_client, i) for i in range(n)),
+            probe(probe_client, "other", paths["other"], other),
+            probe(probe_client, "healthz", "/healthz", {}),
+        )
+
+    def p99(xs: list[float]) -> float:
+        return statistics.quantiles(xs, n=100, method="inclusive")[98] if len(xs) > 1 else float("nan")
+
+    return {
+        "burst_other_tenant_p99_ms": round(p99(seen["other"]), 1),
+        "burst_healthz_p99_ms": round(p99(seen["healthz"]), 1),
+        "burst_5xx": sum(c for s, c in codes.items() if s >= 500) + other_5xx,
+        "burst_answers": {str(s): c for s, c in sorted(codes.items())},
+        "burst_requests": n,
+    }
+
+
 WRK_REPORT = """
 done = function(summary, latency, requests)
   local n = summary.requests
@@ -538,6 +600,7 @@ def main() -> None:
     ap.add_argument("--upload-mb", type=float, default=64)
     ap.add_argument("--uploads", type=int, default=6)
     ap.add_argument("--skip-workers", action="store_true")
+    ap.add_argument("--burst", type=int, default=300, help="one key's simultaneous requests (0: none)")
     ap.add_argument("--skip-uploads", action="store_true")
     ap.add_argument("--load", choices=["wrk", "httpx"], help="load generator (default: wrk when installed)")
     ap.add_argument("--seconds", type=float, default=15, help="duration of each wrk run")
@@ -617,6 +680,25 @@ def main() -> None:
             f"p50 x{jobs['p50'] / health['p50']:.2f}, p99 x{jobs['p99'] / health['p99']:.2f}",
             f"throughput x{jobs['rps'] / health['rps']:.2f}",
         ))  # fmt: skip
+
+        if args.burst:
+            with session_scope(make_engine(stack.env["MIDVIEW_DATABASE_URL"])) as s:
+                other_key = create_tenant_with_key(s, f"bench-other-{uuid.uuid4().hex[:8]}")
+                other_project = crud.create_project(s, crud.get_api_key(s, other_key).tenant_id, "other").id
+            paths = {"events": f"/jobs/{job_id}/events", "project": f"/projects/{project_id}",
+                     "other": f"/projects/{other_project}"}  # fmt: skip
+            with console.status(f"a burst of {args.burst} requests from one key, half event streams"):
+                b = asyncio.run(
+                    burst(base, headers, {"Authorization": f"Bearer {other_key}"}, paths, args.burst, 5.0)
+                )
+            figures.update({k: v for k, v in b.items() if k != "burst_answers"})
+            figures["burst_answers"] = b["burst_answers"]
+            rows.append((
+                f"another tenant's reads during a burst of {args.burst} from one key, p99",
+                f"{b['burst_other_tenant_p99_ms']:.1f} ms",
+                f"healthz p99 {b['burst_healthz_p99_ms']:.1f} ms; 5xx {b['burst_5xx']}; "
+                f"answers {b['burst_answers']}",
+            ))  # fmt: skip
 
         if not args.skip_uploads:
             upload_section(console, stack, base, headers, project_id, args, rows, figures)
