@@ -79,6 +79,25 @@ def ground_pair_truth(scene: Path, database: Path, report: dict) -> dict[str, di
                 cams[b], poses[b], read_depth(scene, b),
             )  # fmt: skip
             out[key] = {"inliers": len(m), "gt_correct": int(ok.sum())}
+            if "surface" in rec:  # the check against the aerial surface (services.sfm.combined.surface)
+                s = rec["surface"]
+                out[key]["surface"] = {
+                    k: s.get(k) for k in ("accepted", "offset_m", "limit_m", "pnp_inliers", "points")
+                }
+    return out
+
+
+def surface_verdicts(pairs: dict[str, dict]) -> dict[str, int]:
+    """The surface check's verdicts on verified pairs against the truth (a pair with no GT-correct match
+    is false): true pairs kept and refused, false pairs kept and refused (pairs it did not judge apart)."""
+    out = {"true_kept": 0, "true_refused": 0, "false_kept": 0, "false_refused": 0, "not_judged": 0}
+    for p in pairs.values():
+        s = p.get("surface")
+        if s is None or s.get("offset_m") is None and s.get("accepted"):
+            out["not_judged"] += 1
+            continue
+        truth = "true" if p["gt_correct"] > 0 else "false"
+        out[f"{truth}_{'kept' if s['accepted'] else 'refused'}"] += 1
     return out
 
 
@@ -179,9 +198,11 @@ def main(argv: list[str] | None = None) -> int:
     pairs = ground_pair_truth(args.scene, combined / "database.db", report)
     false = sorted(k for k, p in pairs.items() if p["gt_correct"] == 0)
     print(f"verified ground-ground pairs: {len(pairs)}, without a GT-correct match: {len(false)} {false}")
+    verdicts = surface_verdicts(pairs)
+    print(f"the surface check on them (pairs it refused are kept when it is not enforced): {verdicts}")
     if args.json:
         doc = {"command": "python bench/ground_report.py " + " ".join(argv or sys.argv[1:])}
-        extra = {"ground_pairs": pairs, "ground_pairs_without_correct": false}
+        extra = {"ground_pairs": pairs, "ground_pairs_without_correct": false, "surface_verdicts": verdicts}
         args.json.write_text(json.dumps({**doc, **summary(rows), **extra, "per_image": rows}, indent=1))
     return 0
 

@@ -300,6 +300,45 @@ def surface_check(aerial_dir: Path, camera: Camera, conf: dict) -> SurfaceCheck 
     return SurfaceCheck(proxy, camera, conf["surface"])
 
 
+def aerial_tied_poses(transfer_dir: Path) -> dict[str, tuple[Pose, PosStd]]:
+    """The ground images' poses tied to the aerial images (the reducer's accepted PnP poses, in the aerial
+    model's frame) with their standard deviations (position from the inliers, attitude 0.5 degrees)."""
+    import json
+
+    path = transfer_dir / "ground_poses.json"
+    if not path.is_file():
+        return {}
+    out = {}
+    for name, p in json.loads(path.read_text()).get("images", {}).items():
+        if p.get("accepted") and p.get("R") is not None:
+            sigma = float(p.get("position_std_m") or 0.25)
+            out[name] = (Pose(np.asarray(p["R"], float), np.asarray(p["t"], float)), (sigma, sigma, 0.5))
+    return out
+
+
+def _against_surface(
+    surface: SurfaceCheck,
+    anchors: dict[str, tuple[Pose, PosStd]] | None,
+    g0: str,
+    g1: str,
+    f0: np.ndarray,
+    f1: np.ndarray,
+    inl: np.ndarray,
+    priors: dict[str, Pose],
+    prior_std: dict[str, PosStd],
+) -> dict[str, Any]:
+    """The surface check of a verified pair, lifted from the image of the two that has an aerial-tied
+    pose (`anchors`); not judged when neither has one."""
+    p = [np.asarray(f, np.float64)[inl[:, i], :2] for i, f in enumerate((f0, f1))]
+    names = [g0, g1]
+    for a in (0, 1):
+        if anchors and names[a] in anchors:
+            pose, std = anchors[names[a]]
+            b = 1 - a
+            return surface(names[a], p[a], p[b], pose, priors[names[b]], std, prior_std[names[b]])
+    return {"accepted": True, "reason": "neither image has a pose tied to the aerial images: not judged"}
+
+
 def _write_ground_ground(
     db: pycolmap.Database,
     cdb: CombinedDatabase,
@@ -311,6 +350,7 @@ def _write_ground_ground(
     conf: dict,
     prog,
     surface: SurfaceCheck | None = None,
+    anchors: dict[str, tuple[Pose, PosStd]] | None = None,
 ) -> int:
     """Ground pairs from the POS, matched and verified (verify_ground_pair, then against the aerial
     surface when `surface` is given); the number written."""
@@ -325,10 +365,8 @@ def _write_ground_ground(
             f0, f1, mm, camera, priors[g0], priors[g1], prior_std[g0], prior_std[g1], conf
         )
         if len(inl) and surface is not None:
-            p0 = np.asarray(f0, np.float64)[inl[:, 0], :2]
-            p1 = np.asarray(f1, np.float64)[inl[:, 1], :2]
-            rec["surface"] = surface(g0, p0, p1, priors[g0], priors[g1], prior_std[g0], prior_std[g1])
-            if not rec["surface"]["accepted"]:
+            rec["surface"] = _against_surface(surface, anchors, g0, g1, f0, f1, inl, priors, prior_std)
+            if not rec["surface"]["accepted"] and conf["surface"].get("enforce", True):
                 rec.update(accepted=False, reason=f"against the aerial surface: {rec['surface']['reason']}")
                 inl = inl[:0]
         cdb.ground_pairs[f"{g0} {g1}"] = rec
@@ -381,9 +419,8 @@ def build_database(
         ids.update(_write_ground_images(db, ground_camera, g_feats, priors, prior_std))
         _write_aerial_ground(db, cdb, t_pairs, t_kps, g_feats)
         args = (g_feats, ground_camera, priors, prior_std, match_conf, conf["ground_pairs"], prog)
-        n_gg = _write_ground_ground(
-            db, cdb, *args, surface_check(aerial_dir, ground_camera, conf["ground_pairs"])
-        )
+        check = surface_check(aerial_dir, ground_camera, conf["ground_pairs"])
+        n_gg = _write_ground_ground(db, cdb, *args, check, aerial_tied_poses(transfer_dir))
     finally:
         db.close()
     logger.info(

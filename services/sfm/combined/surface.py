@@ -4,12 +4,17 @@ An essential matrix accepts two images of different walls that carry the same te
 the same shop front twice), and where the POS noise is as large as the baseline neither the relative
 rotation nor the baseline's direction can tell. The aerial model can: the first image's inlier pixels,
 lifted onto the aerial surface (the plane proxy of the aerial model's points, services.views.PlaneProxy)
-from its POS pose, are where that camera sees them; the second image's pixels of the same matches must
-then place the second camera (PnP) where its POS says it is, within what both POS allow. Matches between
-different walls place it elsewhere, or nowhere (few PnP inliers).
+from a pose of it tied to the aerial images (the reducer's accepted PnP pose), are where that camera
+sees them; the second image's pixels of the same matches must then place the second camera (PnP) where
+its POS says it is, within what the POS allows. Matches between different walls place it elsewhere, or
+nowhere (few PnP inliers).
+
+Lifted from a POS pose instead, the check cannot tell: on `isprs` (ground POS noise 2.5 m horizontal,
+4 m vertical, 2 degrees) it refused the 4 false pairs it judged and 5 of the 6 true ones
+(docs/measurements.md), so a pair of which neither image has an aerial-tied pose is not judged.
 
     check = SurfaceCheck(PlaneProxy.from_model(aerial_dir / "sparse"), camera, conf)
-    rec = check(name0, kp0_inliers, kp1_inliers, prior0, prior1, std0, std1)   # rec["accepted"]
+    rec = check(name0, kp0_inliers, kp1_inliers, pose0, prior1, std0, std1)   # rec["accepted"]
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ PosStd = tuple[float, float, float]  # (horizontal m, vertical m, attitude deg)
 
 default_conf: dict[str, Any] = {
     "enabled": True,
+    "enforce": True,  # False: the check is recorded in the pair's report, the pair kept (to measure it)
     "min_points": 12,  # inliers with a surface behind them needed to judge (fewer: not judged, kept)
     "min_inlier_ratio": 0.5,  # of those, the share the second camera's PnP pose must explain
     "ransac_px": 4.0,
