@@ -64,6 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         out / "job", images / "aerial", images / "ground", scene / "pos.csv", scene / "cameras.json",
         options={"profile": a.profile, "seed": a.seed},
     )  # fmt: skip
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
     size = survey_size(scene)
     predicted = costs.estimate(job.options, size["aerial"], size["ground"])
     t0 = time.perf_counter()

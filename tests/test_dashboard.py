@@ -324,6 +324,15 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
         assert "matches" in _by(d, "#pair-info").text
     d.save_screenshot(str(shots / "ground-1280.png"))
 
+    # a shared link survives the sign-in: signed out, the job's link asks for the key, then opens the job
+    _by(d, "#signout").click()
+    d.get(job_url)
+    _wait(d, lambda d: _all(d, "#api-key"), 30, "the sign-in form")
+    _by(d, "#api-key").send_keys(KEY)
+    _by(d, "#signin button").click()
+    _wait(d, lambda d: _all(d, "#stages tr.stage-row"), 30, "the shared job's page")
+    assert d.current_url == job_url
+
     # a phone: 390 px wide, nothing wider than the screen
     d.set_window_size(390, 844)
     for url, shot, ready in [(job_url, "job-390.png", "#stages tr.stage-row"),

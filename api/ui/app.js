@@ -102,7 +102,12 @@ function signIn() {
   const form = h("form", { id: "signin", onsubmit: async (e) => {
     e.preventDefault();
     key = input.value.trim();
-    try { await api("GET", "/projects"); sessionStorage.setItem("midview-key", key); location.hash = "#/projects"; route(); }
+    try {
+      await api("GET", "/projects"); sessionStorage.setItem("midview-key", key);
+      // a shared link (a project, a job, a ground image) opens where it points once signed in
+      if (!/^#\/(projects|jobs)\/./.test(location.hash)) history.replaceState(null, "", "#/projects");
+      route();
+    }
     catch (x) { err.textContent = `sign in failed: ${x.message}`; key = null; }
   } }, h("label", { for: "api-key" }, "API key"), input, h("p"), h("button", { type: "submit" }, "Sign in"), err);
   main.replaceChildren(h("section", {}, h("h1", {}, "Sign in"), form,
