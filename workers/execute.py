@@ -33,17 +33,22 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import sqlalchemy as sa
+from sqlalchemy.orm import Session
 
 from services.pipeline import STAGES, JobOptions
+from shared.config import Settings
 from shared.db import crud
-from shared.db.models import TERMINAL_JOB_STATUSES, JobStatus, StageRun, StageStatus, utcnow
+from shared.db.models import TERMINAL_JOB_STATUSES, Job, JobStatus, StageRun, StageStatus, utcnow
 from shared.db.session import get_engine, session_scope
 from shared.outcome import job_outcome
 from shared.storage import Storage, StorageKeyError, get_storage
 from workers import jobsync
+
+if TYPE_CHECKING:
+    from services.pipeline import Job as PipelineJob
 
 log = logging.getLogger("midview.workers")
 
@@ -132,13 +137,13 @@ def error_text(stage: str | None, exc: BaseException) -> str:
 # -- context -------------------------------------------------------------------------------------
 @dataclass
 class Context:
-    settings: Any
+    settings: Settings
     engine: sa.Engine
     storage: Storage
     work_dir: Path
 
     @contextmanager
-    def session(self) -> Iterator[Any]:
+    def session(self) -> Iterator[Session]:
         with session_scope(self.engine) as s:
             yield s
 
@@ -147,7 +152,7 @@ _storages: dict[tuple, Storage] = {}
 _lock = threading.Lock()
 
 
-def get_context(settings: Any) -> Context:
+def get_context(settings: Settings) -> Context:
     """Engine (process-wide per URL), storage (cached per configuration) and work folder."""
     key = (
         settings.storage,
@@ -179,12 +184,12 @@ class JobInfo:
     run_id: str | None = None
 
 
-def _info(row: Any) -> JobInfo:
+def _info(row: Job) -> JobInfo:
     options = JobOptions.model_validate(row.options or {})
     return JobInfo(row.id, jobsync.job_storage_prefix(row), list(options.stages))
 
 
-def _live_row(session: Any, job_id: str) -> Any:
+def _live_row(session: Session, job_id: str) -> Job:
     row = crud.get_job(session, job_id)
     if row is None:
         raise JobStopped(f"job {job_id} no longer exists")
@@ -193,7 +198,9 @@ def _live_row(session: Any, job_id: str) -> Any:
     return row
 
 
-def _open_run(session: Any, row: Any, stage: str, worker: str | None, node: str | None = None) -> StageRun:
+def _open_run(
+    session: Session, row: Job, stage: str, worker: str | None, node: str | None = None
+) -> StageRun:
     """The stage run of this attempt: the running one started by the match_views fan-out (or by a
     worker that was lost) is reused; runs of earlier attempts left running are closed. It records the
     worker, its Celery node and a first heartbeat."""
@@ -221,7 +228,7 @@ def _open_run(session: Any, row: Any, stage: str, worker: str | None, node: str 
     return current
 
 
-def heartbeat(job_id: str, stage: str, *, settings: Any) -> int:
+def heartbeat(job_id: str, stage: str, *, settings: Settings) -> int:
     """Refresh the heartbeat of the job's running runs of stage (called periodically while a task works
     on it); returns how many rows it touched."""
     with get_context(settings).session() as s:
@@ -230,7 +237,7 @@ def heartbeat(job_id: str, stage: str, *, settings: Any) -> int:
             .where(StageRun.job_id == job_id, StageRun.stage == stage, StageRun.status == StageStatus.running)
             .values(heartbeat_at=utcnow())
         )
-        return int(r.rowcount or 0)
+        return int(getattr(r, "rowcount", 0) or 0)  # an UPDATE's CursorResult
 
 
 def _begin(
@@ -296,7 +303,7 @@ class ProgressReporter:
 
 
 # -- job folder ----------------------------------------------------------------------------------
-def _materialize(ctx: Context, info: JobInfo) -> Any:
+def _materialize(ctx: Context, info: JobInfo) -> PipelineJob:
     """materialize + pull under the job folder's lock; returns the services.pipeline.Job."""
     root = jobsync.job_root(ctx.work_dir, info.id)
     with jobsync.locked(root):
@@ -312,13 +319,15 @@ def _materialize(ctx: Context, info: JobInfo) -> Any:
     return job
 
 
-def _push(ctx: Context, info: JobInfo, job: Any, paths: list, unit: str, mirror: list | None = None) -> None:
+def _push(
+    ctx: Context, info: JobInfo, job: PipelineJob, paths: list, unit: str, mirror: list | None = None
+) -> None:
     with jobsync.locked(job.root):
         stats = jobsync.push(ctx.storage, info.prefix, job.root, paths, unit, mirror or [])
     log.info("job %s: pushed %s: %s", info.id, unit, stats)
 
 
-def _push_stage(ctx: Context, info: JobInfo, job: Any, stage: str) -> None:
+def _push_stage(ctx: Context, info: JobInfo, job: PipelineJob, stage: str) -> None:
     from services import pipeline
 
     sd = pipeline.REGISTRY[stage]  # its folders are mirrored (objects of files gone locally deleted)
@@ -352,7 +361,7 @@ def artifact_files(root: Path, stage: str) -> list[tuple[str, str, Path]]:
     return out
 
 
-def _record_artifacts(session: Any, info: JobInfo, job: Any, stage: str) -> int:
+def _record_artifacts(session: Session, info: JobInfo, job: PipelineJob, stage: str) -> int:
     files = artifact_files(job.root, stage)
     for rel, kind, p in files:
         crud.record_artifact(
@@ -370,7 +379,7 @@ def _record_artifacts(session: Any, info: JobInfo, job: Any, stage: str) -> int:
 
 # -- units ---------------------------------------------------------------------------------------
 def execute_stage(
-    job_id: str, stage: str, *, settings: Any, worker: str | None = None, node: str | None = None
+    job_id: str, stage: str, *, settings: Settings, worker: str | None = None, node: str | None = None
 ) -> dict:
     """Run one stage of a job (skipped when up to date); returns {stage, skipped, seconds, summary}.
     node: the Celery node name, recorded on the stage run for the reconciler's liveness check."""
@@ -423,7 +432,7 @@ def stage_dir(stage: str) -> str:
 
 
 def prepare_fan_out(
-    job_id: str, stage: str, *, settings: Any, worker: str | None = None, node: str | None = None
+    job_id: str, stage: str, *, settings: Settings, worker: str | None = None, node: str | None = None
 ) -> tuple[list[str], str]:
     """Start of a fan-out stage (services.pipeline.FanOut): open its stage run, do its preparation once
     (pushed, so that every unit task reuses it), return (the unit names, their queue); no units when the
@@ -456,7 +465,9 @@ def prepare_fan_out(
         raise
 
 
-def execute_unit(job_id: str, stage: str, unit: str, *, settings: Any, worker: str | None = None) -> dict:
+def execute_unit(
+    job_id: str, stage: str, unit: str, *, settings: Settings, worker: str | None = None
+) -> dict:
     """One unit of a fan-out stage (a block, a view; it returns at once when already done); pushes its
     files and reports the stage's progress: the units done so far, and this one's own."""
     from services import pipeline
@@ -499,7 +510,7 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
-def finalize(job_id: str, *, settings: Any) -> dict:
+def finalize(job_id: str, *, settings: Settings) -> dict:
     """The job succeeded: metrics = every stage's marker summary (read from storage) and the outcome
     (shared.outcome: registered images per set, warnings); webhook event.
     Idempotent (a job already succeeded is left as it is)."""
@@ -530,7 +541,7 @@ def finalize(job_id: str, *, settings: Any) -> dict:
     return metrics
 
 
-def fail(job_id: str, stage: str | None, error: BaseException | str, *, settings: Any) -> None:
+def fail(job_id: str, stage: str | None, error: BaseException | str, *, settings: Settings) -> None:
     """The job failed: its running stage runs and the job get the error text; webhook event. A job that
     has finished already (e.g. cancelled) is left as it is."""
     from shared.webhooks import enqueue_job_event
@@ -549,7 +560,7 @@ def fail(job_id: str, stage: str | None, error: BaseException | str, *, settings
     log.error("job %s failed: %s", job_id, text)
 
 
-def _close_running(session: Any, job_id: str, status: StageStatus, error: str | None) -> int:
+def _close_running(session: Session, job_id: str, status: StageStatus, error: str | None) -> int:
     runs = list(
         session.scalars(
             sa.select(StageRun).where(StageRun.job_id == job_id, StageRun.status == StageStatus.running)
@@ -560,13 +571,15 @@ def _close_running(session: Any, job_id: str, status: StageStatus, error: str | 
     return len(runs)
 
 
-def close_running_stages(job_id: str, *, settings: Any, status: StageStatus = StageStatus.cancelled) -> int:
+def close_running_stages(
+    job_id: str, *, settings: Settings, status: StageStatus = StageStatus.cancelled
+) -> int:
     """Close the job's running stage runs (after its tasks were terminated on cancel)."""
     with get_context(settings).session() as s:
         return _close_running(s, job_id, status, None)
 
 
-def job_stage_list(job_id: str, *, settings: Any, from_stage: str | None = None) -> list[str]:
+def job_stage_list(job_id: str, *, settings: Settings, from_stage: str | None = None) -> list[str]:
     """The job's stages from from_stage on (JobStopped when it no longer runs)."""
     ctx = get_context(settings)
     with ctx.session() as s:

@@ -12,7 +12,7 @@ from .exif import (
     record_from_exif,
 )
 from .frames import CRSError, LocalFrame, from_wgs84, is_wgs84_geographic, parse_crs, to_wgs84
-from .io import PosRow, match_names, read_pos, sniff_format, sniff_text
+from .io import match_names, read_pos, sniff_format, sniff_text
 from .json_format import parse_pos_json, read_pos_json, write_pos_json
 from .odm import parse_crs_line, parse_geo_txt, read_geo_txt, write_geo_txt
 from .pos_csv import parse_pos_csv, read_pos_csv, write_pos_csv
@@ -24,6 +24,7 @@ from .records import (
     PosRecord,
     check_against_images,
 )
+from .rows import PosRow
 
 __all__ = [
     "CRSError",

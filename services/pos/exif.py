@@ -30,8 +30,8 @@ from PIL import Image, UnidentifiedImageError
 from shared.images import IMAGE_SUFFIXES, ImageError, list_images, read_image
 
 from .attitude import ypr_to_matrix
-from .io import LAT_RANGE, LON_RANGE, check_number
 from .records import PosError, PosRecord
+from .rows import LAT_RANGE, LON_RANGE, check_number
 
 if TYPE_CHECKING:
     from services.colmap_model import Camera

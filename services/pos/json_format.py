@@ -23,8 +23,8 @@ import numpy as np
 
 from .attitude import matrix_to_opk, matrix_to_ypr
 from .frames import WGS84_3D, CRSError, from_wgs84, parse_crs
-from .io import ANGLE_RANGE, STD_RANGE, PosRow, check_number, position_bounds, rows_to_records
 from .records import PosError, PosRecord
+from .rows import ANGLE_RANGE, STD_RANGE, PosRow, check_number, position_bounds, rows_to_records
 
 GEO_KEYS = ("lat", "lon", "h")
 PROJ_KEYS = ("x", "y", "z")

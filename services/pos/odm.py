@@ -25,8 +25,8 @@ import numpy as np
 
 from .attitude import matrix_to_ypr
 from .frames import CRSError, from_wgs84, parse_crs
-from .io import ANGLE_RANGE, STD_RANGE, PosRow, check_number, position_bounds, rows_to_records
 from .records import PosError, PosRecord
+from .rows import ANGLE_RANGE, STD_RANGE, PosRow, check_number, position_bounds, rows_to_records
 
 _UTM = re.compile(r"^WGS84\s+UTM\s+(\d{1,2})\s*([NS])$", re.IGNORECASE)
 
