@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -230,13 +231,20 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     job_url = d.current_url
     seen = set()
 
+    labels = set()
+
     def finished(d):
         status = _by(d, "#job-status").text
         seen.add(status)
+        labels.update(
+            r[1] for r in d.execute_script(ROWS, "#stages tr.stage-row") if r[1].startswith("running")
+        )
         return status in ("succeeded", "failed", "cancelled") and status
 
     assert _wait(d, finished, JOB_TIMEOUT_S, "the end of the job") == "succeeded", _text(d)
     assert "running" in seen  # the page followed the job live
+    # the running stage shows its share done
+    assert labels and all(re.fullmatch(r"running \d{1,3}%", x) for x in labels), labels
     # (read in one script: the page re-renders its rows as the last events arrive)
     stages = d.execute_script(ROWS, "#stages tr.stage-row")
     assert [r[0] for r in stages] == list(DEFAULT_STAGES) and all(r[1] == "succeeded" for r in stages), stages

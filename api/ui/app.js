@@ -389,9 +389,14 @@ function stageRows(job) {
   return wanted.map((st) => {
     const run = [...runs].reverse().find((r) => r.stage === st);
     const status = run ? run.status : (job.status === "queued" || job.status === "running" ? "pending" : "-");
-    const value = run && ["succeeded", "skipped"].includes(run.status) ? 1 : (job.current_stage === st ? null : 0);
-    const bar = h("progress", { max: 1, ...(value === null ? {} : { value }), "data-stage": st });
-    return h("tr", { class: "stage-row", "data-stage": st }, h("td", {}, st), h("td", { class: `status ${status}` }, status),
+    // the running stage's share: the job's progress is (index of the stage + its fraction) / stages
+    const i = wanted.indexOf(st), current = job.current_stage === st && run && run.status === "running";
+    const share = current ? Math.min(1, Math.max(0, job.progress * wanted.length - i)) : null;
+    const value = run && ["succeeded", "skipped"].includes(run.status) ? 1 : (current ? share : 0);
+    const bar = h("progress", { max: 1, value, "data-stage": st });
+    // a stage whose outputs were up to date was not run again: say so (a rerun that changed nothing)
+    const label = current ? `${status} ${Math.round(100 * share)}%` : status === "skipped" ? "skipped: up to date" : status;
+    return h("tr", { class: "stage-row", "data-stage": st }, h("td", {}, st), h("td", { class: `status ${status}` }, label),
       h("td", {}, bar), h("td", { class: "num" }, run ? fmtS(run.duration_s) : ""),
       h("td", { class: "bad" }, run && run.error ? run.error.slice(0, 300) : ""));
   });
