@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import threading
 import time
 import uuid
@@ -126,6 +127,52 @@ def test_event_streams_share_one_poll_of_the_database(api_env, make_jpeg) -> Non
     assert all(seen[0] == "queued" and seen[-1] == "running" for seen in seens)
     assert polls <= 0.5 / 0.05 + 2  # one query per poll for the 200 streams (their first reads aside)
     assert took < 2.0, took
+
+
+def test_results_as_named_bundles(api_env, make_jpeg) -> None:
+    """GET /jobs/{id}/bundles/gis.zip and colmap.zip: the combined model's GIS layers, or its COLMAP
+    model and georeference, each with the report, in one zip streamed from the storage; 404 for an
+    unknown bundle, a job with nothing for it yet, and another tenant's job."""
+    import io
+    import zipfile
+
+    c, t = api_env.client, api_env.tenant()
+    pid, jid = _job(api_env, t, make_jpeg)
+    assert c.get(f"/jobs/{jid}/bundles/gis.zip", headers=t.headers).status_code == 404  # nothing yet
+    files = {
+        "combined/gis/cameras.gpkg": os.urandom(3_000_000),  # larger than a chunk: streamed in parts
+        "combined/gis/points.las": b"LASF" + os.urandom(1000),
+        "combined/sparse/cameras.bin": os.urandom(200),
+        "combined/sparse/images.bin": os.urandom(300),
+        "combined/georef.json": b'{"crs": "EPSG:32633"}',
+        "combined/report.json": b'{"NRI": {}}',
+        "matches/v1.h5": os.urandom(100),
+    }
+    with api_env.session() as s:
+        for name, data in files.items():
+            stage, rel = (
+                ("combined_sfm", name.split("/", 1)[1])
+                if name.startswith("combined/")
+                else ("match_views", name)
+            )
+            key = job_key(t.id, pid, jid, stage, rel)
+            api_env.storage.put_bytes(key, data)
+            crud.record_artifact(s, jid, "x", name, key, len(data), hashlib.sha256(data).hexdigest(), None)
+        s.commit()
+    for bundle, names in (
+        ("gis", {"combined/gis/cameras.gpkg", "combined/gis/points.las", "combined/report.json"}),
+        ("colmap", {"combined/sparse/cameras.bin", "combined/sparse/images.bin", "combined/georef.json",
+                    "combined/report.json"}),
+    ):  # fmt: skip
+        r = c.get(f"/jobs/{jid}/bundles/{bundle}.zip", headers=t.headers)
+        assert r.status_code == 200 and r.headers["content-type"] == "application/zip"
+        assert f"midview-{jid[:8]}-{bundle}.zip" in r.headers["content-disposition"]
+        with zipfile.ZipFile(io.BytesIO(r.content)) as zf:
+            assert zf.testzip() is None and set(zf.namelist()) == names
+            assert all(zf.read(n) == files[n] for n in names)
+    r = c.get(f"/jobs/{jid}/bundles/everything.zip", headers=t.headers)
+    assert r.status_code == 404 and "bundles are gis, colmap" in r.text
+    assert c.get(f"/jobs/{jid}/bundles/gis.zip", headers=api_env.tenant().headers).status_code == 404
 
 
 def test_artifact_listing_and_downloads(api_env, make_jpeg) -> None:

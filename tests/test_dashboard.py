@@ -267,6 +267,13 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     assert left_out == 4 - registered and (left_out == 0 or "left out" in _by(d, "#job-headline").text)
     assert _by(d, "#job-result").text == ("finished with warnings" if registered < 4 else "")
     _wait(d, lambda d: len(_all(d, "#artifacts tr.artifact-row")) >= 10, what="the artifacts")
+    # the named products, one zip each, above the list of files
+    assert _all(d, "#bundle-gis") and _all(d, "#bundle-colmap")
+    import io
+    import zipfile
+
+    z = httpx.get(f"{server}/jobs/{shown}/bundles/gis.zip", headers={"Authorization": f"Bearer {KEY}"})
+    assert "combined/gis/cameras.gpkg" in zipfile.ZipFile(io.BytesIO(z.content)).namelist()
     names = [r[0] for r in d.execute_script(ROWS, "#artifacts tr.artifact-row")]
     assert "combined/gis/cameras.gpkg" in names and "combined/report.json" in names
     d.save_screenshot(str(shots / "job-1280.png"))

@@ -7,11 +7,13 @@ from typing import Annotated
 
 import sqlalchemy as sa
 from fastapi import APIRouter, HTTPException, Query, Request, status
+from fastapi import Path as FastApiPath
 from fastapi.responses import StreamingResponse
 from sqlalchemy.orm import Session
 
+from api.bundles import BUNDLES, members, stream_zip
 from api.deps import JobDep, SessionDep, SettingsDep, StorageDep, TenantDep
-from api.downloads import stream_object
+from api.downloads import content_disposition, stream_object
 from api.matches import MATCH_KINDS, list_pairs, local_copy, read_pair
 from api.schemas import ArtifactOut, PairList, PairMatchesOut, PairSummary
 from shared.db import crud
@@ -69,6 +71,38 @@ def download_artifact(
     filename = artifact.name.rsplit("/", 1)[-1]
     session.close()  # hold no database connection while the bytes flow
     return stream_object(storage, artifact.storage_key, filename, artifact.content_type)
+
+
+@router.get(
+    "/jobs/{job_id}/bundles/{bundle}.zip",
+    response_class=StreamingResponse,
+    responses={
+        200: {"content": {"application/zip": {}}},
+        404: {"description": "No such bundle, or nothing in it yet"},
+    },
+)
+def download_bundle(
+    job: JobDep,
+    session: SessionDep,
+    storage: StorageDep,
+    bundle: Annotated[str, FastApiPath(description=f"One of: {', '.join(BUNDLES)}")],
+) -> StreamingResponse:
+    """The job's results as one zip: `gis` (GeoPackage, GeoJSON, OPK, LAS of the combined model, and its
+    report) or `colmap` (the combined model, its georeference and report)."""
+    spec = BUNDLES.get(bundle)
+    if spec is None:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND, f"no bundle {bundle!r}: bundles are {', '.join(BUNDLES)}"
+        )
+    files = [(a.name, a.storage_key) for a in members(spec, crud.list_artifacts(session, job.id))]
+    if not files:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND, f"job {job.id} has nothing for the {bundle} bundle yet"
+        )
+    filename = f"midview-{job.id[:8]}-{bundle}.zip"
+    session.close()  # hold no database connection while the bytes flow
+    headers = {"Content-Disposition": content_disposition(filename)}
+    return StreamingResponse(stream_zip(storage, files), media_type="application/zip", headers=headers)
 
 
 def _match_artifact(session: Session, job: Job, name: str | None) -> Artifact:

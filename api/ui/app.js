@@ -422,6 +422,7 @@ async function jobPage(jobId) {
   const log = h("div", { class: "log", id: "job-log" });
   const outcome = h("p", { id: "job-outcome" });
   const arts = h("tbody", { id: "artifacts" });
+  const bundles = h("p", { id: "bundles", class: "row" });
   const cancel = h("button", { class: "secondary", id: "cancel-job", onclick: async () => {
     try { await api("POST", `/jobs/${jobId}/cancel`); } catch (x) { toast(x.message); }
   } }, "Cancel");
@@ -443,6 +444,12 @@ async function jobPage(jobId) {
       job.error ? h("span", { class: "bad" }, job.error) : "");
     if (final) {
       const list = await api("GET", `/jobs/${jobId}/artifacts`);
+      // the named products first: one zip each (GET /jobs/{id}/bundles/{name}.zip)
+      const has = (prefix) => list.some((a) => a.name.startsWith(prefix));
+      bundles.replaceChildren(...(SNAP ? [] : [["gis", "GIS bundle (GeoPackage, OPK, LAS)", "combined/gis/"],
+        ["colmap", "COLMAP model bundle", "combined/sparse/"]].filter(([, , p]) => has(p)).map(([b, label]) =>
+        h("button", { class: "secondary", id: `bundle-${b}`, onclick: () => downloadArtifact(
+          { name: `midview-${jobId.slice(0, 8)}-${b}.zip`, download_url: `/jobs/${jobId}/bundles/${b}.zip` }).catch((x) => toast(x.message)) }, label))));
       arts.replaceChildren(...list.map((a) => h("tr", { class: "artifact-row" }, h("td", {}, a.name), h("td", { class: "muted hide-phone" }, a.kind),
         h("td", { class: "num" }, a.size_bytes ? fmtBytes(a.size_bytes) : ""),
         h("td", {}, h("button", { class: "link", onclick: () => downloadArtifact(a).catch((x) => toast(x.message)) }, "download")))));
@@ -454,7 +461,7 @@ async function jobPage(jobId) {
       h("table", {}, h("thead", {}, h("tr", {}, h("th", {}, "stage"), h("th", {}, "status"), h("th", {}, "progress"), h("th", { class: "num" }, "time"), h("th", {}, ""))), stages)),
     SNAP && SNAP.evaluation ? evaluationSection(SNAP.evaluation) : "",
     h("section", {}, h("h2", {}, "Log"), log),
-    h("section", {}, h("h2", {}, "Results"), h("table", {}, arts)));
+    h("section", {}, h("h2", {}, "Results"), bundles, h("table", {}, arts)));
   await render();
   if (SNAP) for (const r of job.stages) log.append(`${new Date(r.finished_at).toLocaleTimeString()}  ${r.status} ${r.stage} (${fmtS(r.duration_s)})\n`);
   let lastStage = job.current_stage;
