@@ -347,6 +347,10 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     _by(d, "#signin button").click()
     _wait(d, lambda d: _all(d, "#stages tr.stage-row"), 30, "the shared job's page")
     assert d.current_url == job_url
+    # reopened, a finished job shows its history as the server keeps it: every stage run, in order
+    log = _by(d, "#job-log").text
+    assert "started aerial_sfm (attempt 1" in log and "succeeded combined_sfm (" in log, log
+    assert log.index("started aerial_sfm") < log.index("succeeded aerial_sfm") < log.index("started train_splat")
 
     # a phone: 390 px wide, nothing wider than the screen
     d.set_window_size(390, 844)

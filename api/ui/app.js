@@ -463,7 +463,11 @@ async function jobPage(jobId) {
     h("section", {}, h("h2", {}, "Log"), log),
     h("section", {}, h("h2", {}, "Results"), bundles, h("table", {}, arts)));
   await render();
-  if (SNAP) for (const r of job.stages) log.append(`${new Date(r.finished_at).toLocaleTimeString()}  ${r.status} ${r.stage} (${fmtS(r.duration_s)})\n`);
+  // the job's history as the server keeps it (its stage runs, every attempt), then what follows live
+  const history = job.stages.flatMap((r) => [[r.started_at, `started ${r.stage} (attempt ${r.attempt}${r.worker ? ", " + r.worker : ""})`],
+    ...(r.finished_at ? [[r.finished_at, `${r.status} ${r.stage} (${fmtS(r.duration_s)})${r.error ? ": " + r.error.slice(0, 200) : ""}`]] : [])]);
+  history.sort((a, b) => new Date(a[0]) - new Date(b[0]));
+  for (const [t, text] of history) log.append(`${new Date(t).toLocaleTimeString()}  ${text}\n`);
   let lastStage = job.current_stage;
   follow(jobId, async (ev, data) => {
     if (ev === "progress") {
