@@ -266,6 +266,13 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     left_out = sum(outcome["causes"].values())
     assert left_out == 4 - registered and (left_out == 0 or "left out" in _by(d, "#job-headline").text)
     assert _by(d, "#job-result").text == ("finished with warnings" if registered < 4 else "")
+    # the ground images as thumbnails: registered first, the others grouped by their cause
+    _wait(d, lambda d: len(_all(d, "#ground-grid a.thumb")) == 4, 30, "the ground images' grid")
+    assert len(_all(d, "#ground-grid a.thumb.ok")) == registered
+    groups = [g.get_attribute("data-group") for g in _all(d, "#ground-grid .thumb-group")]
+    assert set(groups) - {"registered"} == set(outcome["causes"]) and groups[0] == (
+        "registered" if registered else groups[0]
+    )
     _wait(d, lambda d: len(_all(d, "#artifacts tr.artifact-row")) >= 10, what="the artifacts")
     # the named products, one zip each, above the list of files
     assert _all(d, "#bundle-gis") and _all(d, "#bundle-colmap")
@@ -350,7 +357,9 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     # reopened, a finished job shows its history as the server keeps it: every stage run, in order
     log = _by(d, "#job-log").text
     assert "started aerial_sfm (attempt 1" in log and "succeeded combined_sfm (" in log, log
-    assert log.index("started aerial_sfm") < log.index("succeeded aerial_sfm") < log.index("started train_splat")
+    assert (
+        log.index("started aerial_sfm") < log.index("succeeded aerial_sfm") < log.index("started train_splat")
+    )
 
     # a phone: 390 px wide, nothing wider than the screen
     d.set_window_size(390, 844)

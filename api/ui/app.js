@@ -409,6 +409,36 @@ function evaluationSection(ev) {  // a static report's table of the methods agai
     (ev.notes || []).map((n) => h("p", { class: "muted" }, n)),
     (ev.pictures || []).map((p) => h("figure", { class: "evaluation-picture" }, h("img", { class: "photo", src: p.src, alt: p.caption }), h("figcaption", { class: "muted" }, p.caption))));
 }
+// the ground images of a finished job as thumbnails, registered first, then grouped by the cause that
+// left them out, each linked to its page (at most GRID_MAX pictures; the rest by name)
+const GRID_MAX = 60;
+async function groundGrid(jobId, project) {
+  const gj = await camerasOf(jobId);
+  if (!gj) return "";
+  const ground = gj.features.map((f) => f.properties).filter((p) => p.set === "ground");
+  const groups = new Map([["registered", []]]);
+  for (const p of ground) {
+    const g = p.registered ? "registered" : p.cause || "not registered";
+    if (!groups.has(g)) groups.set(g, []);
+    groups.get(g).push(p);
+  }
+  let shown = 0;
+  const sections = [];
+  for (const [g, ps] of groups) {
+    if (!ps.length) continue;
+    const cells = await Promise.all(ps.map(async (p) => {
+      const file = p.name.replace(/^ground\//, "");
+      const href = `#/jobs/${jobId}/ground/${file.split("/").map(encodeURIComponent).join("/")}`;
+      const pic = shown++ < GRID_MAX
+        ? h("img", { alt: p.name, src: await authedUrl(`/projects/${project.id}/images/${p.name}/download`).catch(() => "") }) : "";
+      return h("a", { class: `thumb ${p.registered ? "ok" : "bad"}`, href, title: p.reason || p.name }, pic, h("span", {}, file));
+    }));
+    const label = g === "registered" ? "registered" : CAUSE_WORDS[g] || g;
+    sections.push(h("div", { class: "thumb-group", "data-group": g }, h("h3", {}, `${label} (${ps.length})`), h("div", { class: "thumbs" }, cells)));
+  }
+  return h("section", { id: "ground-grid" }, h("h2", {}, "Ground images"), sections);
+}
+
 async function jobPage(jobId) {
   let job = await api("GET", `/jobs/${jobId}`);
   const project = await api("GET", `/projects/${job.project_id}`);
@@ -423,6 +453,7 @@ async function jobPage(jobId) {
   const outcome = h("p", { id: "job-outcome" });
   const arts = h("tbody", { id: "artifacts" });
   const bundles = h("p", { id: "bundles", class: "row" });
+  const grid = h("div", {});
   const cancel = h("button", { class: "secondary", id: "cancel-job", onclick: async () => {
     try { await api("POST", `/jobs/${jobId}/cancel`); } catch (x) { toast(x.message); }
   } }, "Cancel");
@@ -444,6 +475,7 @@ async function jobPage(jobId) {
       job.error ? h("span", { class: "bad" }, job.error) : "");
     if (final) {
       const list = await api("GET", `/jobs/${jobId}/artifacts`);
+      if (!grid.firstChild) grid.replaceChildren(await groundGrid(jobId, project).catch(() => ""));
       // the named products first: one zip each (GET /jobs/{id}/bundles/{name}.zip)
       const has = (prefix) => list.some((a) => a.name.startsWith(prefix));
       bundles.replaceChildren(...(SNAP ? [] : [["gis", "GIS bundle (GeoPackage, OPK, LAS)", "combined/gis/"],
@@ -459,6 +491,7 @@ async function jobPage(jobId) {
     h("h1", {}, `Job ${jobId.slice(0, 8)} of ${project.name}`), head,
     h("section", {}, h("div", { class: "row" }, status, result, pct, SNAP ? "" : [cancel, from, rerun]), h("p"), overall, outcome,
       h("table", {}, h("thead", {}, h("tr", {}, h("th", {}, "stage"), h("th", {}, "status"), h("th", {}, "progress"), h("th", { class: "num" }, "time"), h("th", {}, ""))), stages)),
+    grid,
     SNAP && SNAP.evaluation ? evaluationSection(SNAP.evaluation) : "",
     h("section", {}, h("h2", {}, "Log"), log),
     h("section", {}, h("h2", {}, "Results"), bundles, h("table", {}, arts)));
