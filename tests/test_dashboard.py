@@ -318,6 +318,12 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     d.save_screenshot(str(shots / "3d-1280.png"))
     d.back()
     _wait(d, lambda d: _all(d, "#ground-images tr.ground-row"), 30, "the map again")
+    # a ground camera's marker opens its page
+    marker = _all(d, "#map circle.cam.ground")[0]
+    d.execute_script("arguments[0].dispatchEvent(new MouseEvent('click', {bubbles: true}))", marker)
+    _wait(d, lambda d: "/ground/" in d.current_url and _all(d, "#ground-photo"), 30, "a ground page from the map")
+    d.back()
+    _wait(d, lambda d: _all(d, "#ground-images tr.ground-row"), 30, "the map again")
     ground_rows = _all(d, "#ground-images tr.ground-row")
     ground_rows[0].find_element("css selector", "a").click()
     photo_width = "const i = document.getElementById('ground-photo'); return i && i.naturalWidth"

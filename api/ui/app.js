@@ -533,6 +533,13 @@ async function layerOf(jobId, name) {  // a JSON artifact of the job, or null
   return r.json();
 }
 const camerasOf = (jobId) => layerOf(jobId, "combined/gis/cameras.geojson");  // the combined model's cameras
+// a ground camera's marker opens its page (aerial markers stay as they are)
+function toGroundPage(marker, name) {
+  if (!name.startsWith("ground/")) return marker;
+  marker.classList.add("link");
+  marker.addEventListener("click", () => { location.hash = `#/jobs/${location.hash.split("/")[2]}/ground/${name.slice(7).split("/").map(encodeURIComponent).join("/")}`; });
+  return marker;
+}
 async function mapPage(jobId) {
   const job = await api("GET", `/jobs/${jobId}`);
   const project = await api("GET", `/projects/${job.project_id}`);
@@ -550,6 +557,9 @@ async function mapPage(jobId) {
   const pad = 10, x0 = Math.min(...xs) - pad, x1 = Math.max(...xs) + pad, y0 = Math.min(...ys) - pad, y1 = Math.max(...ys) + pad;
   const W = 1000, scale = W / Math.max(x1 - x0, 1), H = Math.max(200, (y1 - y0) * scale);
   const map = s("svg", { class: "map", id: "map", viewBox: `0 0 ${W} ${H}` });
+  // the POS-to-registered offsets end in an arrowhead: from where the POS put a camera to where it is
+  const defs = s("defs"), arrow = s("marker", { id: "pos-arrow", viewBox: "0 0 10 10", refX: 10, refY: 5, markerWidth: 6, markerHeight: 6, orient: "auto-start-reverse" });
+  arrow.append(s("path", { d: "M 0 0 L 10 5 L 0 10 z", fill: "#e8890c" })); defs.append(arrow); map.append(defs);
   const sx = (x) => (x - x0) * scale, sy = (y) => H - (y - y0) * scale;
   for (let m = 10; m * scale < W / 4; m *= 2) { if (m * scale > W / 12) { // scale bar
     map.append(s("line", { x1: 20, y1: H - 20, x2: 20 + m * scale, y2: H - 20, stroke: "#333", "stroke-width": 3 }));
@@ -568,14 +578,16 @@ async function mapPage(jobId) {
     if (r) map.append(s("circle", { cx: sx(px), cy: sy(py), r: 5, fill: "none", stroke: "#98a2b3", class: "pos" }));
     if (!q.p.registered) continue;
     const [cx, cy] = xy(q.lon, q.lat);
-    if (r) map.append(s("line", { x1: sx(px), y1: sy(py), x2: sx(cx), y2: sy(cy), stroke: "#e8890c", "stroke-width": 1.5, class: "error-line" }));
+    if (r) map.append(s("line", { x1: sx(px), y1: sy(py), x2: sx(cx), y2: sy(cy), stroke: "#e8890c", "stroke-width": 1.5, class: "error-line", "marker-end": "url(#pos-arrow)" }));
     const c = s("circle", { cx: sx(cx), cy: sy(cy), r: q.p.set === "ground" ? 6 : 4, fill: colour(q), class: `cam ${q.p.set}` });
     const title = s("title"); title.textContent = `${q.p.name}: ${q.p.to_pos_m !== null ? q.p.to_pos_m.toFixed(2) + " m from its POS" : ""}`;
-    c.append(title); map.append(c);
+    c.append(title); map.append(toGroundPage(c, q.p.name));
   }
   for (const q of pts.filter((q) => q.p.set === "ground" && !q.p.registered && posBy[q.p.name])) {
     const [px, py] = xy(posBy[q.p.name].lon, posBy[q.p.name].lat);
-    map.append(s("circle", { cx: sx(px), cy: sy(py), r: 6, fill: "#c62828", class: "cam ground unregistered" }));
+    const c = s("circle", { cx: sx(px), cy: sy(py), r: 6, fill: "#c62828", class: "cam ground unregistered" });
+    const title = s("title"); title.textContent = `${q.p.name}: not registered${q.p.cause ? " (" + (CAUSE_WORDS[q.p.cause] || q.p.cause) + ")" : ""}`;
+    c.append(title); map.append(toGroundPage(c, q.p.name));
   }
   const ground = pts.filter((q) => q.p.set === "ground");
   main.replaceChildren(
