@@ -321,7 +321,8 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     # a ground camera's marker opens its page
     marker = _all(d, "#map circle.cam.ground")[0]
     d.execute_script("arguments[0].dispatchEvent(new MouseEvent('click', {bubbles: true}))", marker)
-    _wait(d, lambda d: "/ground/" in d.current_url and _all(d, "#ground-photo"), 30, "a ground page from the map")
+    opened = "a ground page from the map"
+    _wait(d, lambda d: "/ground/" in d.current_url and _all(d, "#ground-photo"), 30, opened)
     d.back()
     _wait(d, lambda d: _all(d, "#ground-images tr.ground-row"), 30, "the map again")
     ground_rows = _all(d, "#ground-images tr.ground-row")
