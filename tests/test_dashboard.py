@@ -210,6 +210,10 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     from selenium.webdriver.support.ui import Select
 
     assert Select(_by(d, "#opt-profile")).first_selected_option.get_attribute("value") == "cpu"
+    # the cpu profile's estimated time for this project's images (GET /options' cost model)
+    estimate = "for 20 aerial and 4 ground images on 2 CPU cores"
+    _wait(d, lambda d: estimate in _by(d, "#opt-estimate").text, 30, "the time estimate")
+    assert re.match(r"about \d+ min ", _by(d, "#opt-estimate").text), _by(d, "#opt-estimate").text
     assert _by(d, "#opt-splat-steps").get_attribute("placeholder") == "3000"
     Select(_by(d, "#opt-profile")).select_by_value("gpu")
     assert _by(d, "#opt-splat-steps").get_attribute("placeholder") == "7000"

@@ -247,12 +247,14 @@ function uploader(pid, set, onDone) {
 }
 
 // -- the job options form (GET /options: profiles, each option's default per profile, its help) ----------
-async function optionsForm() {
-  const spec = await api("GET", "/options");
+async function optionsForm(counts) {
+  // with the project's image counts: each profile's estimated time (the cost model of GET /options)
+  const spec = await api("GET", counts ? `/options?aerial=${counts.aerial}&ground=${counts.ground}` : "/options");
   const offered = (spec.profiles.find((p) => p.offered) || spec.profiles[0]).name;
   const profile = h("select", { id: "opt-profile" }, spec.profiles.map((p) =>
     h("option", { value: p.name, selected: p.name === offered }, `${p.name}${p.offered ? " (this service's workers)" : ""}`)));
   const profileHelp = h("p", { class: "muted", id: "opt-profile-help" });
+  const estimate = h("p", { id: "opt-estimate" });
   const fields = {}, rows = [];
   const stagesSpec = spec.options.find((o) => o.name === "stages");
   const stageBoxes = stagesSpec.choices.map((st) => h("label", { class: "stage-choice" },
@@ -271,6 +273,10 @@ async function optionsForm() {
   const showDefaults = () => {
     const p = spec.profiles.find((x) => x.name === profile.value);
     profileHelp.textContent = p ? p.help : "";
+    const e = p && p.estimate;
+    estimate.textContent = !e ? "" : e.total_s === null ? "no time estimate: this profile was not timed"
+      : `about ${Math.max(1, Math.round(e.total_s / 60))} min for ${e.aerial} aerial and ${e.ground} ground images on 2 CPU cores`
+        + (e.relative_error.median !== null ? ` (the estimate is off by ${Math.round(100 * e.relative_error.median)}% typically)` : "");
     for (const { input, spec: o } of Object.values(fields)) {
       const d = o.defaults[profile.value];
       if (input.tagName === "SELECT") input.options[0].textContent = `${d} (profile's)`;
@@ -295,11 +301,15 @@ async function optionsForm() {
       if (f) f.input.classList.add("bad-field");
     }
   };
-  const form = h("div", { id: "job-form" }, h("p", {}, h("label", { for: "opt-profile" }, "profile "), profile), profileHelp,
+  const form = h("div", { id: "job-form" }, h("p", {}, h("label", { for: "opt-profile" }, "profile "), profile), profileHelp, estimate,
     h("p", { id: "opt-stages" }, "stages: ", stageBoxes),
     h("details", {}, h("summary", {}, "options"), h("table", { id: "options" }, h("tbody", {}, rows))),
     h("details", {}, h("summary", {}, "more options as JSON"), advanced));
-  return { form, read, mark };
+  const update = async (c) => {  // the project's image counts changed: estimate again
+    try { spec.profiles = (await api("GET", `/options?aerial=${c.aerial}&ground=${c.ground}`)).profiles; showDefaults(); }
+    catch { /* the estimate stays as it was */ }
+  };
+  return { form, read, mark, update };
 }
 
 // -- a project ---------------------------------------------------------------------------------------
@@ -311,6 +321,7 @@ async function projectPage(pid) {
   const refresh = async () => {
     const q = await api("GET", `/projects/${pid}`);
     counts.textContent = `${q.images.aerial} aerial, ${q.images.ground} ground images, ${q.pos_records} POS rows`;
+    if (jobForm) await jobForm.update(q.images);
   };
   const posResult = h("div", { id: "pos-result" });
   const posInput = h("input", { type: "file", id: "pos-file", onchange: async () => {
@@ -330,7 +341,7 @@ async function projectPage(pid) {
     try { await api("PUT", `/projects/${pid}/cameras`, JSON.parse(await camInput.files[0].text())); toast("cameras.json stored"); }
     catch (x) { toast(`cameras.json: ${x.message}`); }
   } });
-  const jobForm = SNAP ? null : await optionsForm();
+  const jobForm = SNAP ? null : await optionsForm(p.images);
   const start = h("button", { id: "start-job", onclick: async () => {
     try {
       const job = await api("POST", `/projects/${pid}/jobs`, { options: jobForm.read() });
