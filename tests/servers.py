@@ -469,3 +469,34 @@ def start_uvicorn(
         if "address already in use" not in _tail(log).lower():
             break
     raise RuntimeError(f"uvicorn exited with {proc.returncode}:\n{_tail(log)}")
+
+
+def start_midview_serve(
+    data_dir: Path, api_key: str, log: Path, env_extra: dict[str, str] | None = None, timeout: float = 60.0
+) -> tuple[subprocess.Popen, str]:
+    """`midview serve` (the console script, else `python -m cli.main`) on a free port of 127.0.0.1 with
+    its data in data_dir and a known API key, in its own process group; (process, base URL) once GET
+    /healthz answers 200, AssertionError with the log's tail when it does not start."""
+    import httpx
+
+    (port,) = free_ports(1)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
+    env.update({"MIDVIEW_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", **(env_extra or {})})
+    exe = Path(sys.executable).with_name("midview")
+    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "cli.main"]
+    args = [*cmd, "serve", "--port", str(port), "--data-dir", str(data_dir), "--api-key", api_key]
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(args, cwd=Path(__file__).resolve().parents[1], env=env, stdout=out,
+                                stderr=subprocess.STDOUT, start_new_session=True)  # fmt: skip
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
+                return proc, base
+        except httpx.HTTPError:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            _stop(proc)
+            raise AssertionError(f"midview serve did not start:\n{_tail(log, 3000)}")
+        time.sleep(0.2)

@@ -6,11 +6,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import os
 import socket
-import sys
 import time
-from pathlib import Path
 
 import pytest
 
@@ -180,39 +177,12 @@ def test_uvicorn_answers_a_lying_content_length_at_once(tmp_path, request):
 def test_midview_serve_refuses_a_huge_request_head_at_once(tmp_path):
     """`midview serve` bounds the request line and headers (max_header_bytes): a 64 MB header is answered
     400 and its connection closed within a second, while requests with normal headers are served."""
-    import subprocess
-
     import httpx
-    from servers import _stop, free_ports
+    from servers import _stop, start_midview_serve
 
-    (port,) = free_ports(1)
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
-    env.update(MIDVIEW_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-    exe = Path(sys.executable).with_name("midview")
-    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "cli.main"]
-    args = [
-        *cmd,
-        "serve",
-        "--port",
-        str(port),
-        "--data-dir",
-        str(tmp_path / "data"),
-        "--api-key",
-        "mv_" + "h" * 40,
-    ]
-    with open(tmp_path / "serve.log", "wb") as log:
-        proc = subprocess.Popen(args, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    base = f"http://127.0.0.1:{port}"
+    proc, base = start_midview_serve(tmp_path / "data", "mv_" + "h" * 40, tmp_path / "serve.log")
+    port = int(base.rsplit(":", 1)[1])
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert proc.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
-            time.sleep(0.2)
         for size in (1 << 20, 64 << 20):
             with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
                 t0 = time.perf_counter()

@@ -13,8 +13,6 @@ import json
 import os
 import re
 import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -51,42 +49,16 @@ def survey(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     """`midview serve` on a free port with a known API key; its base URL."""
-    import httpx
-    from servers import free_ports
+    from servers import _stop, start_midview_serve
 
-    (port,) = free_ports(1)
     folder = tmp_path_factory.mktemp("serve")
     SERVE["data"] = folder / "data"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
-    env.update(
-        MIDVIEW_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", MIDVIEW_EVENTS_POLL_S="0.2"
-    )
-    exe = Path(sys.executable).with_name("midview")
-    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "cli.main"]
-    log = open(folder / "serve.log", "wb")
-    args = [*cmd, "serve", "--port", str(port), "--data-dir", str(folder / "data"), "--api-key", KEY]
-    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
-    base = f"http://127.0.0.1:{port}"
+    env = {"OMP_NUM_THREADS": "1", "MIDVIEW_EVENTS_POLL_S": "0.2"}
+    proc, base = start_midview_serve(folder / "data", KEY, folder / "serve.log", env)
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert proc.poll() is None and time.monotonic() < deadline, (folder / "serve.log").read_text()[
-                -3000:
-            ]
-            time.sleep(0.3)
         yield base
     finally:
-        proc.terminate()
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
+        _stop(proc, timeout=15)
 
 
 @pytest.fixture(scope="module")
