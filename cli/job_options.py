@@ -25,7 +25,7 @@ def _base_type(annotation: Any) -> tuple[type, list[Any] | None]:
     args = [a for a in typing.get_args(annotation) if a is not type(None)]
     if typing.get_origin(annotation) is typing.Literal:
         return str, list(typing.get_args(annotation))
-    if args and typing.get_origin(annotation) is not typing.Literal and len(args) == 1:
+    if len(args) == 1:  # X | None
         return _base_type(args[0])
     return (annotation if isinstance(annotation, type) else str), None
 
