@@ -48,6 +48,19 @@ confs: dict[str, dict[str, Any]] = {
         # CPU-trained 3DGS grows floaters in the air near the low views; trees, cars and roofs the aerial
         # images see where they are
         "free_space_stride": 4,  # the test at every this-many-th pixel (the mask then filled between)
+        # walls continued down to the terrain (buildings stand on the street: LoD1): the aerial images see
+        # a facade's lower storeys at grazing angles, behind cars and trees, so its sparse points thin out
+        # towards the street, where the ground cameras look. A vertical plane (normal within
+        # wall_max_tilt_deg of horizontal) at least wall_min_width_m wide has each column of its grid filled
+        # from its lowest occupied cell down to the terrain there (the terrain_quantile of the heights of
+        # the points within terrain_radius_m), by at most wall_max_drop_m
+        "walls_to_terrain": False,
+        "wall_max_tilt_deg": 8.0,
+        "wall_min_width_m": 4.0,
+        "wall_max_drop_m": 30.0,
+        "terrain_radius_m": 10.0,
+        "terrain_quantile": 0.1,
+        "terrain_min_points": 10,
     },
 }
 
@@ -150,21 +163,92 @@ def _occupancy(uv: np.ndarray, cell: float, close: int) -> tuple[np.ndarray, np.
     return lo, filled.astype(bool)
 
 
-def make_plane(P: np.ndarray, plane: np.ndarray, conf: dict) -> Plane:
-    """A Plane of its parameters (4,) and its points P (N, 3)."""
-    n, d = plane[:3] / np.linalg.norm(plane[:3]), float(plane[3])
+def is_wall(n: np.ndarray, conf: dict) -> bool:
+    """Whether a plane of unit normal n (3,) is a wall: its normal within wall_max_tilt_deg of horizontal."""
+    return abs(float(n[2])) < np.sin(np.radians(float(conf["wall_max_tilt_deg"])))
+
+
+def _basis(n: np.ndarray, upright: bool) -> tuple[np.ndarray, np.ndarray]:
+    """An in-plane basis (e1, e2) for unit normal n; `upright`: e1 horizontal and e2 up the plane."""
+    if upright:
+        e2 = np.array([0.0, 0.0, 1.0]) - n[2] * n
+        e2 /= np.linalg.norm(e2)
+        return np.cross(e2, n), e2
     a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = np.cross(n, a)
     e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
+    return e1, np.cross(n, e1)
+
+
+def make_plane(P: np.ndarray, plane: np.ndarray, conf: dict, terrain: Terrain | None = None) -> Plane:
+    """A Plane of its parameters (4,) and its points P (N, 3); with `terrain` (conf walls_to_terrain), a
+    wall's columns continued down to it (`extend_to_terrain`)."""
+    n, d = plane[:3] / np.linalg.norm(plane[:3]), float(plane[3])
+    wall = terrain is not None and is_wall(n, conf)
+    e1, e2 = _basis(n, upright=wall)
     m = P.mean(0)
     o = m - (n @ m + d) * n
     uv = np.stack([(P - o) @ e1, (P - o) @ e2], 1)
     cell = float(conf["cell_m"])
     lo, occ = _occupancy(uv, cell, int(conf["close_cells"]))
+    if wall and terrain is not None and occ.shape[1] * cell >= float(conf["wall_min_width_m"]):
+        lo, occ = extend_to_terrain(o, e1, e2, lo, cell, occ, terrain, float(conf["wall_max_drop_m"]))
     ext = np.array([[0, 0], [occ.shape[1], 0], [0, occ.shape[0]], [occ.shape[1], occ.shape[0]]]) * cell + lo
     corners = o + ext[:, :1] * e1 + ext[:, 1:] * e2
     return Plane(n, d, o, e1, e2, lo, cell, occ, corners, len(P))
+
+
+class Terrain:
+    """The terrain's height under horizontal positions: a low quantile of the heights of the points near
+    each (the street, not the roofs and facades beside it)."""
+
+    def __init__(self, P: np.ndarray, conf: dict):
+        self.P = P
+        self.tree = cKDTree(P[:, :2])
+        self.radius = float(conf["terrain_radius_m"])
+        self.quantile = float(conf["terrain_quantile"])
+        self.min_points = int(conf["terrain_min_points"])
+        self.floor = float(np.quantile(P[:, 2], 0.01)) if len(P) else 0.0  # below: outliers
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """Heights (M,) at xy (M, 2); NaN where fewer than terrain_min_points points are near."""
+        out = np.full(len(xy), np.nan)
+        for i, near in enumerate(self.tree.query_ball_point(xy, self.radius)):
+            if len(near) >= self.min_points:
+                out[i] = max(float(np.quantile(self.P[near, 2], self.quantile)), self.floor)
+        return out
+
+
+def extend_to_terrain(
+    o: np.ndarray,
+    e1: np.ndarray,
+    e2: np.ndarray,
+    lo: np.ndarray,
+    cell: float,
+    occ: np.ndarray,
+    terrain: Terrain,
+    max_drop: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A wall's occupancy grid (rows up e2, columns along the horizontal e1) with each occupied column
+    filled from its lowest occupied cell down to the terrain under it, when that is at most `max_drop`
+    below: (lo (2,), occ (rows', cols)), the grid grown downwards as needed."""
+    cols = np.nonzero(occ.any(0))[0]
+    if len(cols) == 0:
+        return lo, occ
+    bottom = occ[:, cols].argmax(0)  # the lowest occupied row of each column
+    foot = o + (lo[0] + (cols[:, None] + 0.5) * cell) * e1 + (lo[1] + bottom[:, None] * cell) * e2
+    drop = foot[:, 2] - terrain.height(foot[:, :2])  # NaN where the terrain is unknown
+    ok = (drop > cell) & (drop <= max_drop)
+    if not ok.any():
+        return lo, occ
+    rows_down = np.zeros(len(cols), int)
+    rows_down[ok] = np.ceil(drop[ok] / (e2[2] * cell)).astype(int)
+    start = bottom - rows_down
+    pad = max(0, -int(start.min()))
+    occ = np.concatenate([np.zeros((pad, occ.shape[1]), bool), occ], 0)
+    for c, a, b in zip(cols[ok], start[ok] + pad, bottom[ok] + pad, strict=True):
+        occ[a:b, c] = True
+    return np.array([lo[0], lo[1] - pad * cell]), occ
 
 
 class PlaneProxy:
@@ -178,7 +262,8 @@ class PlaneProxy:
     def from_points(cls, P: np.ndarray, conf: dict | None = None) -> PlaneProxy:
         c = {**confs["default"], **(conf or {})}
         found = detect_planes(P, c)
-        return cls([make_plane(P[inl], plane, c) for plane, inl in found], c)
+        terrain = Terrain(P, c) if c["walls_to_terrain"] else None
+        return cls([make_plane(P[inl], plane, c, terrain) for plane, inl in found], c)
 
     @classmethod
     def from_model(cls, model: str | Path | pycolmap.Reconstruction, conf: dict | None = None) -> PlaneProxy:
