@@ -6,13 +6,12 @@ checked against the downloaded combined model. Then a campaign of three surveys 
 one of them made to fail in its combined SfM (a worker's job folder broken under it), rerun from that
 stage with `midview campaign retry`.
 
-The survey is `tiny` with a 2 x 2 grid of aerial stations (as test_service_e2e), one aerial image
+The survey is `tiny` (as test_service_e2e), one aerial image
 padded (JPEG comment segments) to 20 MB so that its upload takes three parts.
 """
 
 from __future__ import annotations
 
-import copy
 import json
 import os
 import shutil
@@ -80,13 +79,11 @@ def service(service_settings, api_server, celery_worker, s3_server):
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory) -> Path:
-    """`tiny` with 2 x 2 aerial stations (20 aerial, 4 ground images), one aerial image padded to 20 MB;
-    the job options in options.json."""
+    """`tiny` (20 aerial, 4 ground images), one aerial image padded to 20 MB; the job options in
+    options.json."""
     from services import synth
 
-    conf = copy.deepcopy(synth.confs["tiny"])
-    conf["aerial"]["grid"] = [2, 2]
-    root = synth.main(conf, tmp_path_factory.mktemp("survey") / "tiny22", seed=0)
+    root = synth.main(synth.confs["tiny"], tmp_path_factory.mktemp("survey") / "tiny", seed=0)
     padded = next((root / "images" / "aerial").glob(f"{PADDED}*"))
     data = padded.read_bytes()
     com = b"".join(b"\xff\xfe" + (65535).to_bytes(2, "big") + bytes(65533) for _ in range(320))

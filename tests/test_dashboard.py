@@ -8,7 +8,6 @@ runs/test-artifacts/dashboard/ (or MIDVIEW_TEST_ARTIFACTS); the browser console 
 
 from __future__ import annotations
 
-import copy
 import json
 import os
 import re
@@ -38,12 +37,10 @@ SERVE: dict[str, Path] = {}  # the server's data folder (its embedded worker's j
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory) -> Path:
-    """`tiny` with 2 x 2 aerial stations: 20 aerial, 4 ground images."""
+    """`tiny`: 20 aerial, 4 ground images."""
     from services import synth
 
-    conf = copy.deepcopy(synth.confs["tiny"])
-    conf["aerial"]["grid"] = [2, 2]
-    return synth.main(conf, tmp_path_factory.mktemp("survey") / "tiny22", seed=0)
+    return synth.main(synth.confs["tiny"], tmp_path_factory.mktemp("survey") / "tiny", seed=0)
 
 
 @pytest.fixture(scope="module")

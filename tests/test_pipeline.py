@@ -2,9 +2,9 @@
 renderer standing in for 3DGS (the 3DGS stages are tested in test_splat*.py), and its job folder
 mechanics: markers, fingerprints, skipping and resuming.
 
-The tiny preset is made a little less tiny (two more aerial stations, so that its obliques overlap; ground
-images of 480x360) and matched with SIFT, so that the whole run takes about a minute on 2 cores; it is a
-test of the mechanics, not of the matching quality (bench/method.py measures that on `small`)."""
+The tiny preset is made a little less tiny (ground images of 480x360) and matched with SIFT, so that the
+whole run takes about a minute on 2 cores; it is a test of the mechanics, not of the matching quality
+(bench/method.py measures that on `small`)."""
 
 from __future__ import annotations
 
@@ -25,7 +25,6 @@ def tiny_scene(tmp_path_factory):
     from services import synth
 
     conf = copy.deepcopy(synth.confs["tiny"])
-    conf["aerial"]["grid"] = [2, 2]
     conf["ground"].update(width=480, height=360, f=351.0)
     out = tmp_path_factory.mktemp("tiny") / "scene"
     return synth.main(conf, out, seed=0)

@@ -8,10 +8,8 @@ Both sides run with MIDVIEW_NUM_THREADS=1 (COLMAP) and torch_threads 1: with one
 deterministic, so the results must be identical, not just close. (With several threads COLMAP's mapper
 is not: the number of 3D points of `tiny` varies by a few between runs.)
 
-The survey is `tiny` with a 2 x 2 grid of aerial stations, as in test_pipeline: tiny's own two stations
-register 4 of their 10 aerial images, mostly roofs, and its 3DGS renders views that match little or
-nothing (how little depends on the machine); with four stations all 20 register and the paper views match
-the aerial images.
+The survey is `tiny`: its 2 x 2 grid of aerial stations registers all 20 aerial images and the paper
+views match them.
 """
 
 from __future__ import annotations
@@ -169,14 +167,10 @@ def _download(service, job_id: str, name: str, dest: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory) -> Path:
-    """`tiny` (seed 0) with a 2 x 2 grid of aerial stations: 20 aerial and 4 ground images."""
-    import copy
-
+    """`tiny` (seed 0): 20 aerial and 4 ground images."""
     from services import synth
 
-    conf = copy.deepcopy(synth.confs["tiny"])
-    conf["aerial"]["grid"] = [2, 2]
-    return synth.main(conf, tmp_path_factory.mktemp("survey") / "tiny22", seed=0)
+    return synth.main(synth.confs["tiny"], tmp_path_factory.mktemp("survey") / "tiny", seed=0)
 
 
 @pytest.fixture(scope="module")

@@ -201,8 +201,23 @@ def test_the_command_warns_of_a_suspect_georeference(tmp_path, monkeypatch):
 
 
 # -- end to end --------------------------------------------------------------------------------
-def test_a_failed_georeference_exits_non_zero_and_keeps_the_model(tiny_scene, tmp_path):
+@pytest.fixture(scope="module")
+def two_stations(tmp_path_factory):
+    """`tiny` with one line of two stations (10 aerial images): each station's five images share its
+    position, so with four stations a similarity always fits one station's five; with two, swapping the
+    nadirs' positions leaves none that fits three."""
+    import copy
+
+    from services import synth
+
+    conf = copy.deepcopy(synth.confs["tiny"])
+    conf["aerial"]["grid"] = [2, 1]
+    return synth.main(conf, tmp_path_factory.mktemp("two-stations") / "scene", seed=0)
+
+
+def test_a_failed_georeference_exits_non_zero_and_keeps_the_model(two_stations, tmp_path):
     """The two nadir images' POS positions swapped: no similarity fits 3 of the cameras."""
+    tiny_scene = two_stations
     recs = read_pos_csv(tiny_scene / "pos.csv")
     by = {r.name: r for r in recs}
     a, b = by["aerial/A0001.jpg"], by["aerial/A0006.jpg"]  # the nadir images swap stations
@@ -226,17 +241,16 @@ def test_a_failed_georeference_exits_non_zero_and_keeps_the_model(tiny_scene, tm
 
 def test_aliked_on_the_tiny_scene(tiny_scene, tmp_path):
     """ALIKED + LightGlue on all pairs (the audit's run: NRI 5/10 of a broken model, 0/5 georef
-    inliers, 9 m residuals). The two nadir images, 180 degrees apart (serpentine flight), match once
-    turned north up; the wrong pairs of opposite obliques are removed; the nadir images and the
-    obliques facing them register (as with SIFT) and georeference within the POS noise; the feature
-    and matching times are measured each."""
+    inliers, 9 m residuals). Nadir images 180 degrees apart (serpentine flight) match once turned north
+    up; the wrong pairs of opposite obliques are removed; all 20 images register (as with SIFT) and
+    georeference within the POS noise; the feature and matching times are measured each."""
     out = tmp_path / "sfm"
     r = CliRunner().invoke(_app(), ["sfm", str(tiny_scene), str(out), "--features", "aliked"])
     assert r.exit_code == 0, r.output
     assert "the georeference is" not in r.output  # no CLI warning about the georeference
     report = json.loads((out / "report.json").read_text())
     registered = {im.name for im in pycolmap.Reconstruction(str(out / "sparse")).images.values()}
-    assert {"aerial/A0001.jpg", "aerial/A0006.jpg"} <= registered and report["num_registered"] >= 4
+    assert len(registered) == report["num_registered"] == 20
     g = report["georef"]
     assert g["status"] == "ok" and g["num_inliers"] == g["num_images"] == report["num_registered"]
     assert g["residual_m"]["max"] < 2.0 and g["attitude_deg"]["median"] < 5.0
@@ -246,10 +260,11 @@ def test_aliked_on_the_tiny_scene(tiny_scene, tmp_path):
     assert truth["absolute_m"]["max"] < 1.5 and truth["aligned_m"]["max"] < 0.5
     db = pycolmap.Database.open(str(out / "database.db"))
     ids = {im.name: im.image_id for im in db.read_all_images()}
-    nadirs = db.read_two_view_geometry(ids["aerial/A0001.jpg"], ids["aerial/A0006.jpg"])
+    nadirs = db.read_two_view_geometry(ids["aerial/A0001.jpg"], ids["aerial/A0016.jpg"])  # 180 deg apart
     db.close()
     assert len(nadirs.inlier_matches) >= 100  # unturned, LightGlue finds no correct match there
     t = report["timings_s"]
     assert t["features"] > 0 and t["matching"] > 0 and t["features"] != t["matching"]
-    assert report["aliked"]["turns"]["aerial/A0006.jpg"] == 2  # the second line's nadir image
-    assert report["pair_check"]["rejected"] and report["pairing"] == "exhaustive (45 pairs)"
+    turns = report["aliked"]["turns"]
+    assert turns["aerial/A0011.jpg"] == turns["aerial/A0016.jpg"] == 2  # the second line's nadir images
+    assert report["pair_check"]["rejected"] and report["pairing"] == "exhaustive (190 pairs)"
