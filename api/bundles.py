@@ -1,6 +1,6 @@
 """A job's results as named products, each one zip file streamed through the API: what a GIS user loads
-(the GIS layers of the combined model and its report) and what a photogrammetrist opens in COLMAP (the
-combined model, its georeference and its report).
+(the GIS layers of the combined model, the orthophoto and the report) and what a photogrammetrist opens
+in COLMAP (the combined model, its georeference and its report).
 
 Members are streamed from the storage into the zip as it is sent (ZIP_STORED: the layers and models are
 binary or already compact), so a bundle of any size costs the API a chunk of memory at a time.
@@ -29,8 +29,9 @@ class Bundle:
 BUNDLES = {
     b.name: b
     for b in (
-        Bundle("gis", "GIS layers of the combined model (GeoPackage, GeoJSON, OPK, LAS) and its report",
-               ("combined/gis/*", "combined/report.json")),
+        Bundle("gis", "GIS layers of the combined model (GeoPackage, GeoJSON, OPK, LAS), the survey's "
+               "orthophoto (GeoTIFF, WGS84) and the report",
+               ("combined/gis/*", "views/ortho/orthophoto.tif", "combined/report.json")),
         Bundle("colmap", "the combined COLMAP model (cameras, images, points), its georeference and report",
                ("combined/sparse/*", "combined/georef.json", "combined/report.json")),
     )

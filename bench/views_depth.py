@@ -37,13 +37,20 @@ from services.conf import merge_conf  # noqa: E402
 from services.geometry import scaled_camera  # noqa: E402
 
 
-def candidate_renderer(job: pipeline.Job, depth: str, sweep_over: dict):
-    """The job's views' renderer with the views' depth `depth` ("splat": the 3DGS alone)."""
+def candidate_renderer(job: pipeline.Job, base: dict, depth: str, sweep_over: dict, over: dict | None = None):
+    """The job's views' renderer with its views' conf `base` and the depth `depth` ("splat": the 3DGS
+    alone), `over` set in that depth's conf (the proxy's for "proxy" and "stereo", the sweep's, on top
+    of `sweep_over`, for "sweep")."""
     if depth == "splat":
         from services.views import SplatRenderer
 
         return SplatRenderer(job.splat.dir, job.settings["splat_backend"], job.render_conf()["min_alpha"])
-    job.settings["views"] = merge_conf(job.settings.get("views", {}), {"depth": depth, "sweep": sweep_over})
+    views = {"depth": depth, "sweep": sweep_over, "proxy": {}}
+    if depth in ("proxy", "stereo"):
+        views["proxy"] = over or {}
+    else:
+        views["sweep"] = {**sweep_over, **(over or {})}
+    job.settings["views"] = merge_conf(base, views)
     return job.renderer(blocks=False)
 
 
@@ -66,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--depths",
         default="splat,proxy,sweep",
-        help="comma-separated: splat, proxy, sweep, stereo; a sweep variant as sweep@KEY=VALUE@KEY=VALUE",
+        help="comma-separated: splat, proxy, sweep, stereo; a variant as KIND@KEY=VALUE@KEY=VALUE (keys of "
+        "the proxy's conf for proxy and stereo, of the sweep's for sweep)",
     )
     ap.add_argument("--width", type=int, default=512, help="views are measured this wide")
     ap.add_argument("--limit", type=int, default=0, help="at most this many views, evenly spread (0: all)")
@@ -76,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     from services.views import GroundTruthRenderer
 
     job = pipeline.Job.load(args.job)
+    base_views = dict(job.settings.get("views", {}))
     sweep_over = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.sweep_set)}
     views = json.loads(job.plan.views.read_text())["views"]
     if args.limit and len(views) > args.limit:
@@ -95,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     for depth in [d.strip() for d in args.depths.split(",") if d.strip()]:
         kind, *over = depth.split("@")  # "sweep@range=0.1@min_gain=0.2": a sweep variant
         extra = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in over)}
-        renderer = candidate_renderer(job, kind, {**sweep_over, **extra})
+        renderer = candidate_renderer(job, base_views, kind, sweep_over, extra)
         rel, t0 = [], time.perf_counter()
         for cam, pose, truth, seen in truths:
             d = renderer.render(cam, pose)[1]

@@ -45,6 +45,7 @@ logger = logging.getLogger("midview.report")
 
 UI = Path(__file__).resolve().parents[1] / "api" / "ui"
 THREE = UI / "node_modules" / "three"
+LEAFLET = UI / "node_modules" / "leaflet" / "dist"
 PROJECT_ID = "demo"
 JOB_ID = "demo-job"
 EMBED_MAX_BYTES = 8_000_000  # artifacts larger than this are linked, not embedded
@@ -209,7 +210,9 @@ def _artifacts(job: pipeline.Job, blobs: dict[str, str]) -> list[dict]:
             key = f"/report/artifacts/{rel}"
             size = path.stat().st_size
             url = None
-            if path.suffix == ".png" and rel.startswith("views/"):
+            if kind == "orthophoto-image" and size <= EMBED_MAX_BYTES:  # the map's background, with its alpha
+                url = _data_url(path.read_bytes(), "image/png")
+            elif path.suffix == ".png" and rel.startswith("views/"):
                 url = jpeg_data_url(path)
             elif path.suffix in JSON_KINDS and size <= EMBED_MAX_BYTES:
                 url = _data_url(path.read_bytes(), content_type(path))
@@ -296,6 +299,22 @@ def import_map() -> dict[str, str]:
     }
 
 
+def leaflet_inline() -> tuple[str, str]:
+    """(css, script) of Leaflet for the page itself, its css images as data: URLs; empty where Leaflet is
+    not installed (the map then says so)."""
+    css, js = LEAFLET / "leaflet.css", LEAFLET / "leaflet.js"
+    if not (css.is_file() and js.is_file()):
+        logger.warning("Leaflet is not installed (scripts/setup.sh): the report has no map")
+        return "", ""
+
+    def image(m: re.Match) -> str:
+        f = LEAFLET / m.group(1)
+        return f"url({_data_url(f.read_bytes(), 'image/png')})" if f.is_file() else m.group(0)
+
+    style = re.sub(r"url\((images/[^)]+\.png)\)", image, css.read_text())
+    return style, js.read_text().replace("</script", "<\\/script")
+
+
 def _script_json(obj: Any) -> str:
     """JSON safe inside a <script> element."""
     return json.dumps(obj, separators=(",", ":")).replace("</", "<\\/").replace("<!--", "<\\!--")
@@ -312,6 +331,12 @@ def write_report_page(
     css = (UI / "app.css").read_text()
     app = (UI / "app.js").read_text()
     page = page.replace('<link rel="stylesheet" href="app.css">', f"<style>\n{css}\n</style>")
+    leaflet_css, leaflet_js = leaflet_inline()
+    leaflet_link = '<link rel="stylesheet" href="node_modules/leaflet/dist/leaflet.css">'
+    page = page.replace(leaflet_link, f"<style>\n{leaflet_css}\n</style>")
+    page = page.replace(
+        '<script src="node_modules/leaflet/dist/leaflet.js"></script>', f"<script>\n{leaflet_js}\n</script>"
+    )
     page = re.sub(
         r'<script type="importmap">.*?</script>',
         lambda _: f'<script type="importmap">{_script_json({"imports": import_map()})}</script>',

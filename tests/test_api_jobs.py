@@ -147,12 +147,15 @@ def test_results_as_named_bundles(api_env, make_jpeg) -> None:
         "combined/georef.json": b'{"crs": "EPSG:32633"}',
         "combined/report.json": b'{"NRI": {}}',
         "matches/v1.h5": os.urandom(100),
+        "views/ortho/orthophoto.tif": b"II*\x00" + os.urandom(500),
     }
     with api_env.session() as s:
         for name, data in files.items():
             stage, rel = (
                 ("combined_sfm", name.split("/", 1)[1])
                 if name.startswith("combined/")
+                else ("render_views", name)
+                if name.startswith("views/")
                 else ("match_views", name)
             )
             key = job_key(t.id, pid, jid, stage, rel)
@@ -160,7 +163,8 @@ def test_results_as_named_bundles(api_env, make_jpeg) -> None:
             crud.record_artifact(s, jid, "x", name, key, len(data), hashlib.sha256(data).hexdigest(), None)
         s.commit()
     for bundle, names in (
-        ("gis", {"combined/gis/cameras.gpkg", "combined/gis/points.las", "combined/report.json"}),
+        ("gis", {"combined/gis/cameras.gpkg", "combined/gis/points.las", "views/ortho/orthophoto.tif",
+                 "combined/report.json"}),
         ("colmap", {"combined/sparse/cameras.bin", "combined/sparse/images.bin", "combined/georef.json",
                     "combined/report.json"}),
     ):  # fmt: skip

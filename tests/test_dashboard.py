@@ -28,6 +28,11 @@ OPTIONS = {"sfm_features": "sift", "matcher": "aliked-lightglue", "view_planner"
            "views_per_ground_image": 1, "splat_steps": 1000, "splat_max_width": 240, "max_keypoints": 1024,
            "seed": 0}  # fmt: skip
 JOB_TIMEOUT_S = 600
+ORTHO_LOADED = "const i = document.querySelector('#map img.orthophoto'); return i && i.naturalWidth"
+TOGGLE_LAYER = (  # a layer of the map's layer control, by its label
+    "for (const l of document.querySelectorAll('#map .leaflet-control-layers label'))"
+    " if (l.textContent.trim() === arguments[0]) l.querySelector('input').click()"
+)
 # the cells' texts of the rows a selector finds, read at once
 ROWS = (
     "return [...document.querySelectorAll(arguments[0])].map((r) => [...r.cells].map((c) => c.textContent))"
@@ -259,10 +264,14 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     d.save_screenshot(str(shots / "job-1280.png"))
 
     _by(d, "#map-link").click()
-    _wait(d, lambda d: _all(d, "#map circle.cam"), 30, "the map")
-    assert len(_all(d, "#map circle.cam.aerial")) >= 16
-    assert len(_all(d, "#map circle.pos")) == 24  # every image's POS
-    assert len(_all(d, "#map polygon.footprint")) == 20  # the aerial images' footprints, the background
+    _wait(d, lambda d: _all(d, "#map path.cam"), 30, "the map")  # Leaflet, vector layers in SVG
+    assert len(_all(d, "#map path.cam.aerial")) >= 16
+    assert len(_all(d, "#map path.pos")) == 24  # every image's POS
+    # the background: the survey's orthophoto, loaded; the aerial footprints one click away
+    _wait(d, lambda d: d.execute_script(ORTHO_LOADED), 30, "the orthophoto")
+    assert not _all(d, "#map path.footprint")
+    d.execute_script(TOGGLE_LAYER, "aerial footprints")
+    assert len(_all(d, "#map path.footprint")) == 20
     ground_rows = _all(d, "#ground-images tr.ground-row")
     assert len(ground_rows) == 4
     for r in ground_rows:
@@ -270,8 +279,7 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
         assert cells[1] in ("yes", "no") and (cells[1] == "yes" or cells[4])  # not registered: the reason
     registered = sum(r.find_elements("css selector", "td")[1].text == "yes" for r in ground_rows)
     assert (
-        len(_all(d, "#map circle.cam.ground")) == 4
-        and len(_all(d, "#map line.error-line")) >= 16 + registered
+        len(_all(d, "#map path.cam.ground")) == 4 and len(_all(d, "#map path.error-line")) >= 16 + registered
     )
     d.save_screenshot(str(shots / "map-1280.png"))
 
@@ -292,7 +300,7 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     d.back()
     _wait(d, lambda d: _all(d, "#ground-images tr.ground-row"), 30, "the map again")
     # a ground camera's marker opens its page
-    marker = _all(d, "#map circle.cam.ground")[0]
+    marker = _all(d, "#map path.cam.ground")[0]
     d.execute_script("arguments[0].dispatchEvent(new MouseEvent('click', {bubbles: true}))", marker)
     opened = "a ground page from the map"
     _wait(d, lambda d: "/ground/" in d.current_url and _all(d, "#ground-photo"), 30, opened)
@@ -344,7 +352,7 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     # a phone: 390 px wide, nothing wider than the screen
     d.set_window_size(390, 844)
     for url, shot, ready in [(job_url, "job-390.png", "#stages tr.stage-row"),
-                             (job_url + "/map", "map-390.png", "#map circle.cam")]:  # fmt: skip
+                             (job_url + "/map", "map-390.png", "#map path.cam")]:  # fmt: skip
         d.get(url)
         _wait(d, lambda d, css=ready: _all(d, css), 30, shot)
         width = d.execute_script("return document.documentElement.scrollWidth")
@@ -404,8 +412,9 @@ def test_the_demo_report_is_the_same_page_static_from_the_file_system(browser, s
     assert _by(d, "#job-headline").text.startswith(f"{report['num_registered']['ground']} of 4 ground images")
     d.save_screenshot(str(shots / "report-job-1280.png"))
     _by(d, "#map-link").click()
-    _wait(d, lambda d: _all(d, "#map circle.cam"), 30, "the report's map")
-    assert len(_all(d, "#map circle.pos")) == 24 and len(_all(d, "#map polygon.footprint")) == 20
+    _wait(d, lambda d: _all(d, "#map path.cam"), 30, "the report's map")
+    assert len(_all(d, "#map path.pos")) == 24
+    _wait(d, lambda d: d.execute_script(ORTHO_LOADED), 30, "the report's orthophoto")
     _by(d, "#view3d-link").click()
     drawn = _wait(d, lambda d: d.execute_script("return window.midview3d"), 60, "the report's 3D view")
     assert drawn["points"] == report["num_points3D"] > 0

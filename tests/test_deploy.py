@@ -103,8 +103,9 @@ def test_gpu_dockerfile_installs_what_its_base_ships():
 
 
 def test_the_wheel_ships_the_dashboard_with_what_its_import_map_loads(tmp_path):
-    """A wheel (what `pip install .` and the Docker image install) holds the dashboard and the three.js
-    files its import map and modules load, so that the 3D view works outside a dev checkout."""
+    """A wheel (what `pip install .` and the Docker image install) holds the dashboard, the three.js
+    files its import map and modules load and Leaflet's, so that the 3D view and the map work outside a
+    dev checkout."""
     import re
     import sys
     import zipfile
@@ -129,4 +130,7 @@ def test_the_wheel_ships_the_dashboard_with_what_its_import_map_loads(tmp_path):
         three.rsplit("/", 1)[0] + "/" + m
         for m in re.findall(r"from '\./([^']+)'", (ROOT / three).read_text())
     }
+    linked = re.findall(r'(?:src|href)="(?:\./)?(node_modules/[^"]+)"', index)  # Leaflet's script and css
+    wanted |= {f"api/ui/{f}" for f in linked}
+    assert len(linked) >= 2 and "api/ui/node_modules/leaflet/dist/images/marker-icon.png" in names
     assert used and wanted <= names, sorted(wanted - names)

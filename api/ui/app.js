@@ -21,12 +21,6 @@ function h(tag, attrs = {}, ...children) {
   for (const c of children.flat()) if (c !== null && c !== undefined) el.append(c.nodeType ? c : String(c));
   return el;
 }
-const svgns = "http://www.w3.org/2000/svg";
-function s(tag, attrs = {}) {
-  const el = document.createElementNS(svgns, tag);
-  for (const [k, v] of Object.entries(attrs)) el.setAttribute(k, v);
-  return el;
-}
 function toast(msg) {
   const t = document.getElementById("toast");
   t.textContent = msg; t.hidden = false;
@@ -544,69 +538,37 @@ async function layerOf(jobId, name) {  // a JSON artifact of the job, or null
   return r.json();
 }
 const camerasOf = (jobId) => layerOf(jobId, "combined/gis/cameras.geojson");  // the combined model's cameras
-// a ground camera's marker opens its page (aerial markers stay as they are)
-function toGroundPage(marker, name) {
-  if (!name.startsWith("ground/")) return marker;
-  marker.classList.add("link");
-  marker.addEventListener("click", () => { location.hash = `#/jobs/${location.hash.split("/")[2]}/ground/${name.slice(7).split("/").map(encodeURIComponent).join("/")}`; });
-  return marker;
+async function artifactUrl(jobId, name) {  // a URL an <img> can load for a job's artifact, or null
+  const a = (await api("GET", `/jobs/${jobId}/artifacts`)).find((x) => x.name === name);
+  if (!a) return null;
+  return isApiUrl(a.download_url) ? authedUrl(a.download_url) : a.download_url;
+}
+// an arrowhead (a small triangle, `len` metres) at the end of the segment a -> b ([lat, lon] each)
+function arrowHead(a, b, len) {
+  const k = Math.cos((b[0] * Math.PI) / 180), dy = (b[0] - a[0]) * 110540, dx = (b[1] - a[1]) * 111320 * k;
+  const n = Math.hypot(dx, dy) || 1, ux = dx / n, uy = dy / n;
+  const at = (x, y) => [b[0] + y / 110540, b[1] + x / (111320 * k)];
+  return [at(0, 0), at(-len * ux - 0.5 * len * uy, -len * uy + 0.5 * len * ux), at(-len * ux + 0.5 * len * uy, -len * uy - 0.5 * len * ux)];
 }
 async function mapPage(jobId) {
   const job = await api("GET", `/jobs/${jobId}`);
   const project = await api("GET", `/projects/${job.project_id}`);
   jobNav(job, project);
-  const [gj, pos, aerialLayer] = await Promise.all([camerasOf(jobId), api("GET", `/projects/${job.project_id}/pos`),
-    layerOf(jobId, "sfm/cameras.geojson")]);
+  const [gj, pos, aerialLayer, orthoDoc, orthoUrl] = await Promise.all([camerasOf(jobId), api("GET", `/projects/${job.project_id}/pos`),
+    layerOf(jobId, "sfm/cameras.geojson"), layerOf(jobId, "views/ortho/orthophoto.json"),
+    artifactUrl(jobId, "views/ortho/orthophoto.png").catch(() => null)]);
   if (!gj) { main.replaceChildren(h("section", {}, h("p", {}, "no cameras layer yet: the job has not finished its combined SfM"))); return; }
   const posBy = Object.fromEntries(pos.map((r) => [r.image_name, r]));
   const pts = gj.features.map((f) => ({ p: f.properties, lon: f.geometry.coordinates[0], lat: f.geometry.coordinates[1] }));
-  const all = [...pts.filter((q) => q.p.registered), ...pos.map((r) => ({ lon: r.lon, lat: r.lat }))];
-  const lat0 = all.reduce((a, q) => a + q.lat, 0) / all.length, lon0 = all.reduce((a, q) => a + q.lon, 0) / all.length;
-  const xy = (lon, lat) => [(lon - lon0) * 111320 * Math.cos((lat0 * Math.PI) / 180), (lat - lat0) * 110540];
-  const P = all.map((q) => xy(q.lon, q.lat));
-  const xs = P.map((q) => q[0]), ys = P.map((q) => q[1]);
-  const pad = 10, x0 = Math.min(...xs) - pad, x1 = Math.max(...xs) + pad, y0 = Math.min(...ys) - pad, y1 = Math.max(...ys) + pad;
-  const W = 1000, scale = W / Math.max(x1 - x0, 1), H = Math.max(200, (y1 - y0) * scale);
-  const map = s("svg", { class: "map", id: "map", viewBox: `0 0 ${W} ${H}` });
-  // the POS-to-registered offsets end in an arrowhead: from where the POS put a camera to where it is
-  const defs = s("defs"), arrow = s("marker", { id: "pos-arrow", viewBox: "0 0 10 10", refX: 10, refY: 5, markerWidth: 6, markerHeight: 6, orient: "auto-start-reverse" });
-  arrow.append(s("path", { d: "M 0 0 L 10 5 L 0 10 z", fill: "#e8890c" })); defs.append(arrow); map.append(defs);
-  const sx = (x) => (x - x0) * scale, sy = (y) => H - (y - y0) * scale;
-  for (let m = 10; m * scale < W / 4; m *= 2) { if (m * scale > W / 12) { // scale bar
-    map.append(s("line", { x1: 20, y1: H - 20, x2: 20 + m * scale, y2: H - 20, stroke: "#333", "stroke-width": 3 }));
-    const t = s("text", { x: 20, y: H - 28, "font-size": 14 }); t.textContent = `${m} m`; map.append(t); break; } }
-  // the aerial images' ground footprints (the aerial SfM's layer): the map's background
-  for (const f of (aerialLayer ? aerialLayer.features : []).filter((f) => f.geometry.type === "Polygon")) {
-    const ring = f.geometry.coordinates[0].map(([lon, lat]) => xy(lon, lat)).map(([x, y]) => `${sx(x).toFixed(1)},${sy(y).toFixed(1)}`);
-    const poly = s("polygon", { points: ring.join(" "), fill: "#2457c5", "fill-opacity": 0.05, stroke: "#2457c5", "stroke-opacity": 0.25, class: "footprint" });
-    const title = s("title"); title.textContent = `footprint of ${f.properties.name}`; poly.append(title);
-    map.insertBefore(poly, map.firstChild);
-  }
-  const colour = (q) => q.p.set === "aerial" ? "#2457c5" : q.p.registered ? "#1a7f37" : "#c62828";
-  for (const q of pts) {
-    const r = posBy[q.p.name];
-    const [px, py] = r ? xy(r.lon, r.lat) : [null, null];
-    if (r) map.append(s("circle", { cx: sx(px), cy: sy(py), r: 5, fill: "none", stroke: "#98a2b3", class: "pos" }));
-    if (!q.p.registered) continue;
-    const [cx, cy] = xy(q.lon, q.lat);
-    if (r) map.append(s("line", { x1: sx(px), y1: sy(py), x2: sx(cx), y2: sy(cy), stroke: "#e8890c", "stroke-width": 1.5, class: "error-line", "marker-end": "url(#pos-arrow)" }));
-    const c = s("circle", { cx: sx(cx), cy: sy(cy), r: q.p.set === "ground" ? 6 : 4, fill: colour(q), class: `cam ${q.p.set}` });
-    const title = s("title"); title.textContent = `${q.p.name}: ${q.p.to_pos_m !== null ? q.p.to_pos_m.toFixed(2) + " m from its POS" : ""}`;
-    c.append(title); map.append(toGroundPage(c, q.p.name));
-  }
-  for (const q of pts.filter((q) => q.p.set === "ground" && !q.p.registered && posBy[q.p.name])) {
-    const [px, py] = xy(posBy[q.p.name].lon, posBy[q.p.name].lat);
-    const c = s("circle", { cx: sx(px), cy: sy(py), r: 6, fill: "#c62828", class: "cam ground unregistered" });
-    const title = s("title"); title.textContent = `${q.p.name}: not registered${q.p.cause ? " (" + (CAUSE_WORDS[q.p.cause] || q.p.cause) + ")" : ""}`;
-    c.append(title); map.append(toGroundPage(c, q.p.name));
-  }
   const ground = pts.filter((q) => q.p.set === "ground");
+  const holder = h("div", { class: "map", id: "map" });
   main.replaceChildren(
     h("h1", {}, `Map of job ${jobId.slice(0, 8)}`),
     h("section", {}, h("div", { class: "legend" }, h("span", {}, h("i", { class: "dot", style: "background:#2457c5" }), "aerial, registered"),
       h("span", {}, h("i", { class: "dot", style: "background:#1a7f37" }), "ground, registered"),
       h("span", {}, h("i", { class: "dot", style: "background:#c62828" }), "ground, not registered (at its POS)"),
-      h("span", {}, h("i", { class: "dot", style: "border:1px solid #98a2b3" }), "POS; orange: POS to registered position")), map),
+      h("span", {}, h("i", { class: "dot", style: "border:1px solid #98a2b3" }), "POS; orange arrow: POS to registered position"),
+      orthoDoc ? h("span", { class: "muted" }, "background: the survey's orthophoto (from the aerial images)") : ""), holder),
     h("section", {}, h("h2", {}, `Ground images (${ground.filter((q) => q.p.registered).length} of ${ground.length} registered)`),
       h("table", { id: "ground-images" }, h("thead", {}, h("tr", {}, h("th", {}, "image"), h("th", {}, "registered"), h("th", { class: "num" }, "to POS"), h("th", { class: "num hide-phone" }, "σ"), h("th", {}, "cause"))),
         h("tbody", {}, ground.map((q) => h("tr", { class: "ground-row" },
@@ -615,6 +577,49 @@ async function mapPage(jobId) {
           h("td", { class: "num" }, q.p.to_pos_m !== null ? `${q.p.to_pos_m.toFixed(2)} m` : ""),
           h("td", { class: "num hide-phone" }, q.p.position_std_m !== null ? `${q.p.position_std_m.toFixed(2)} m` : ""),
           h("td", { title: q.p.reason || "" }, q.p.cause ? h("span", { class: "cause" }, q.p.cause) : q.p.reason || "")))))));
+  const L = window.L;
+  if (!L) { holder.replaceChildren(h("p", { class: "bad" }, "Leaflet is missing (scripts/setup.sh installs it): the map cannot be drawn")); return; }
+  // no tile server: the survey's own orthophoto is the background (the map works offline and on any network)
+  const map = L.map(holder, { zoomSnap: 0.25, maxZoom: 24, attributionControl: false });
+  L.control.scale({ imperial: false, maxWidth: 160 }).addTo(map);
+  const overlays = {};
+  if (orthoDoc && orthoUrl) {
+    const b = orthoDoc.bounds;
+    overlays.orthophoto = L.imageOverlay(orthoUrl, [[b.south, b.west], [b.north, b.east]], { className: "orthophoto", alt: "orthophoto" }).addTo(map);
+  }
+  const prints = L.layerGroup();  // the aerial images' ground footprints (the aerial SfM's layer)
+  for (const f of (aerialLayer ? aerialLayer.features : []).filter((f) => f.geometry.type === "Polygon")) {
+    L.polygon(f.geometry.coordinates[0].map(([lon, lat]) => [lat, lon]), { color: "#2457c5", weight: 1, opacity: 0.4, fillOpacity: 0.04, className: "footprint", interactive: false }).addTo(prints);
+  }
+  if (!overlays.orthophoto) prints.addTo(map);  // without an orthophoto the footprints show the survey
+  overlays["aerial footprints"] = prints;
+  const cams = L.layerGroup().addTo(map);
+  const colour = (q) => q.p.set === "aerial" ? "#2457c5" : q.p.registered ? "#1a7f37" : "#c62828";
+  const open = (name) => () => { if (name.startsWith("ground/")) location.hash = `#/jobs/${jobId}/ground/${name.slice(7).split("/").map(encodeURIComponent).join("/")}`; };
+  const extent = [];
+  for (const q of pts) {
+    const r = posBy[q.p.name];
+    if (r) { L.circleMarker([r.lat, r.lon], { radius: 5, color: "#98a2b3", weight: 1.5, fill: false, className: "pos", interactive: false }).addTo(cams); extent.push([r.lat, r.lon]); }
+    if (!q.p.registered) continue;
+    extent.push([q.lat, q.lon]);
+    if (r) {
+      const a = [r.lat, r.lon], b = [q.lat, q.lon];
+      L.polyline([a, b], { color: "#e8890c", weight: 2, className: "error-line", interactive: false }).addTo(cams);
+      const len = Math.min(1.0, 0.3 * Math.hypot((b[0] - a[0]) * 110540, (b[1] - a[1]) * 111320 * Math.cos((b[0] * Math.PI) / 180)));
+      if (len > 0.02) L.polygon(arrowHead(a, b, len), { color: "#e8890c", weight: 1, fillOpacity: 1, className: "error-arrow", interactive: false }).addTo(cams);
+    }
+    const m = L.circleMarker([q.lat, q.lon], { radius: q.p.set === "ground" ? 7 : 4, color: "#fff", weight: 1, fillColor: colour(q), fillOpacity: 1, className: `cam ${q.p.set}${q.p.set === "ground" ? " link" : ""}` })
+      .bindTooltip(`${q.p.name}${q.p.to_pos_m !== null ? ": " + q.p.to_pos_m.toFixed(2) + " m from its POS" : ""}`).addTo(cams);
+    m.on("click", open(q.p.name));
+  }
+  for (const q of ground.filter((q) => !q.p.registered && posBy[q.p.name])) {
+    const r = posBy[q.p.name];
+    L.circleMarker([r.lat, r.lon], { radius: 7, color: "#fff", weight: 1, fillColor: "#c62828", fillOpacity: 1, className: "cam ground unregistered link" })
+      .bindTooltip(`${q.p.name}: not registered${q.p.cause ? " (" + (CAUSE_WORDS[q.p.cause] || q.p.cause) + ")" : ""}`).addTo(cams).on("click", open(q.p.name));
+  }
+  overlays.cameras = cams;
+  L.control.layers(null, overlays, { collapsed: false }).addTo(map);
+  map.fitBounds(L.latLngBounds(extent).pad(0.1));
 }
 function loadImage(url) { return new Promise((res, rej) => { const im = new Image(); im.onload = () => res(im); im.onerror = rej; im.src = url; }); }
 // a match's colour: by the ground truth where the report has it (synthetic surveys), else by verification

@@ -112,6 +112,7 @@ class BlocksFolder(Folder):
 
 class ViewsFolder(Folder):
     doc: _File = _File("views.json")
+    ortho: _File = _File("ortho")  # services.views.orthophoto's files
 
 
 class TransferFolder(Folder):

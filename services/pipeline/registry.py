@@ -202,7 +202,13 @@ DECLARATIONS: tuple[StageDef, ...] = (
         inputs=lambda j: [j.plan.views, *j.renderer_inputs()],
         outputs=lambda j: [j.views.doc],
         dirs=("views",),
-        artifacts=(("views/views.json", "views"), ("views/*.png", "view")),
+        artifacts=(
+            ("views/views.json", "views"),
+            ("views/*.png", "view"),
+            ("views/ortho/orthophoto.tif", "orthophoto"),  # GeoTIFF, WGS84
+            ("views/ortho/orthophoto.png", "orthophoto-image"),  # the map's background
+            ("views/ortho/orthophoto.json", "orthophoto-bounds"),
+        ),
     ),
     StageDef(
         "match_views",

@@ -179,13 +179,21 @@ def run_plan_views(job: Job, report) -> dict:
 
 
 def run_render_views(job: Job, report) -> dict:
-    from services.views import rendering
+    from services.views import orthophoto, rendering
 
     r = job.renderer()
     path = rendering.main(job.settings["views"], job.plan.views, job.views.dir, r, report)
     doc = json.loads(path.read_text())
     _prune(job.views.dir, {f for v in doc["views"] for f in (v["image"], v["depth"])} | {"views.json"})
-    return {"num_views": len(doc["views"]), "renderer": doc["rendered"]["renderer"]}
+    report(0.99, "orthophoto")
+    ortho = orthophoto.main(
+        job.render_conf()["orthophoto"], r, job.sfm.sparse, job.sfm.georef, job.views.ortho
+    )
+    return {
+        "num_views": len(doc["views"]),
+        "renderer": doc["rendered"]["renderer"],
+        "orthophoto": ortho is not None,
+    }
 
 
 def _prune(folder: Path, keep: set[str]) -> None:

@@ -43,7 +43,7 @@ Modules: `confs`, `rays` (the paper's viewpoint, rays against points and planes,
 """
 
 from services.geometry import angle_deg, look_at, optical_axis, pitch_deg
-from services.views import planning, rendering
+from services.views import orthophoto, planning, rendering
 from services.views.confs import confs
 from services.views.ground_aware import (
     ground_target,
@@ -88,6 +88,7 @@ __all__ = [
     "look_at",
     "make_renderer",
     "optical_axis",
+    "orthophoto",
     "paper_viewpoint",
     "pitch_deg",
     "place_ground_on_terrain",

@@ -30,6 +30,7 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose
 from services.synth import GroundTruthRenderer
+from services.views import orthophoto
 from services.views.proxy import PlaneProxy
 from services.views.proxy import confs as proxy_confs
 from services.views.source_colour import SourceImages
@@ -65,6 +66,7 @@ confs: dict[str, dict[str, Any]] = {
         "plan_depth": None,
         "stereo": dict(stereo_confs["default"]),
         "sweep": dict(sweep_confs["default"]),
+        "orthophoto": dict(orthophoto.confs["default"]),  # services.views.orthophoto, with the views
     },
 }
 
