@@ -161,3 +161,29 @@ def test_walls_whose_points_stop_above_the_street_are_continued_down_to_the_terr
     # without: the lower wall is missing (the ground behind it, or nothing); with: within 1% of the truth
     assert np.mean(rel_error({}) < 0.01) < 0.3
     assert np.mean(rel_error({"walls_to_terrain": True}) < 0.01) > 0.97
+
+
+def test_a_plane_is_a_connected_surface_not_a_slice_through_every_facade_at_one_height():
+    """Six facades, each in a plane of its own, each with a balcony slab at 6 m: a plane may take every
+    point within its tolerance anywhere (one horizontal plane then holds the balconies of several
+    facades 20-50 m apart, a surface the proxy then fills between them), or, with connected_m, only the
+    points connected to where its hypothesis was drawn: one piece of one facade."""
+    rng = np.random.default_rng(6)
+    points, labels = [], []
+    for k in range(6):
+        x0, y0 = 20.0 * (k % 3), 25.0 * (k // 3) + 3.0 * k
+        ab = rng.uniform(0, 1, (100, 2))
+        wall = np.c_[x0 + 10.0 * ab[:, 0], np.full(100, y0), 8.0 * ab[:, 1]]
+        slab = np.c_[x0 + 10.0 * rng.uniform(0, 1, 40), y0 - 0.6 * rng.uniform(0, 1, 40), np.full(40, 6.0)]
+        points += [wall, slab]
+        labels.append(np.full(140, k))
+    P = np.concatenate(points) + rng.normal(0, 0.02, (840, 3))
+    face = np.concatenate(labels)
+
+    def facades_per_plane(conf: dict) -> list[int]:
+        planes = detect_planes(P, {"inlier_m": 0.1, **conf})
+        return [int((np.bincount(face[inl], minlength=6) >= 5).sum()) for _, inl in planes]
+
+    assert max(facades_per_plane({})) >= 3  # a slice through several facades
+    spans = facades_per_plane({"connected_m": 2.5})
+    assert max(spans) == 1 and len(spans) == 12  # each facade's wall and its balcony

@@ -363,7 +363,7 @@ class Job:
         if self.settings["renderer"] != "splat":
             raise ValueError(f"unknown renderer {self.settings['renderer']!r} (splat, gt)")
         conf = self.render_conf()
-        if not colour and conf.get("plan_depth"):  # the planner's probes on another depth (bench only)
+        if not colour and conf["plan_depth"] != "same":  # the planner's probes on another depth (bench)
             conf = {**conf, "depth": conf["plan_depth"]}
         min_alpha = conf["min_alpha"]
         if blocks and self.uses_blocks and (self.blocks.report).is_file():

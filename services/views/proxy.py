@@ -41,6 +41,13 @@ confs: dict[str, dict[str, Any]] = {
         "min_inliers": 25,
         "max_planes": 400,
         "hypotheses": 300,  # per plane found
+        # planes as connected surfaces: a hypothesis is scored by its inliers within support_radius_m of
+        # its sample, and a plane keeps only the inliers connected to them (gaps under connected_m); 0:
+        # every inlier anywhere, which lets a horizontal plane at one storey's height gather the points
+        # of every facade at that height across the site (and a facade then has no plane)
+        "connected_m": 0.0,
+        "support_radius_m": 10.0,
+        "max_misses": 5,  # the search ends after this many rounds of hypotheses in a row find no plane
         "cell_m": 1.0,  # the occupancy grid of a plane's points
         "close_cells": 5,  # holes of up to this many cells between its points are closed
         "occluder": 0.15,  # the 3DGS's depth wins where it is this much (relative) in front of the plane
@@ -82,11 +89,14 @@ class Plane:
     num_points: int
 
 
-def _hypotheses(P: np.ndarray, alive: np.ndarray, tree: cKDTree, conf: dict, rng) -> np.ndarray:
-    """(M, 4) planes (n, d) through a random live point and two live points within sample_radius_m."""
+def _hypotheses(
+    P: np.ndarray, alive: np.ndarray, tree: cKDTree, conf: dict, rng
+) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 4) planes (n, d) through a random live point and two live points within sample_radius_m, and
+    (M,) those random points' indices."""
     live = np.nonzero(alive)[0]
     seeds = rng.choice(live, min(int(conf["hypotheses"]), len(live)), replace=False)
-    out = []
+    out, used = [], []
     for i, nb in zip(seeds, tree.query_ball_point(P[seeds], float(conf["sample_radius_m"])), strict=True):
         nb = [j for j in nb if alive[j] and j != i]
         if len(nb) < 2:
@@ -97,7 +107,46 @@ def _hypotheses(P: np.ndarray, alive: np.ndarray, tree: cKDTree, conf: dict, rng
         if norm > 1e-3:
             n = n / norm
             out.append([*n, -n @ P[i]])
-    return np.asarray(out, float).reshape(-1, 4)
+            used.append(i)
+    return np.asarray(out, float).reshape(-1, 4), np.asarray(used, int)
+
+
+def _connected(P: np.ndarray, idx: np.ndarray, core: np.ndarray, gap: float) -> np.ndarray:
+    """The points of idx (indices into P) connected to those of `core` (a subset) by hops under `gap`."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pairs = cKDTree(P[idx]).query_pairs(gap, output_type="ndarray")
+    n = len(idx)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    keep = np.unique(label[np.isin(idx, core)])
+    return idx[np.isin(label, keep)]
+
+
+def _local_plane(
+    P: np.ndarray, alive: np.ndarray, tree: cKDTree, hyp: np.ndarray, seeds: np.ndarray, c: dict
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """The hypothesis with the most live inliers within support_radius_m of its sample, refit: (its
+    support, plane (4,), the live inliers connected to that support)."""
+    tol = float(c["inlier_m"])
+    balls = tree.query_ball_point(P[seeds], float(c["support_radius_m"]))
+    support = []
+    for h, ball in zip(hyp, balls, strict=True):
+        b = np.asarray(ball, int)
+        b = b[alive[b]]
+        support.append(b[np.abs(P[b] @ h[:3] + h[3]) < tol])
+    best = int(np.argmax([len(x) for x in support]))
+    core = support[best]
+    if len(core) < 3:
+        return len(core), hyp[best], core
+    plane, _ = _refine(P, core, hyp[best], tol)
+    live = np.nonzero(alive)[0]
+    inl = live[np.abs(P[live] @ plane[:3] + plane[3]) < tol]
+    inl = _connected(P, inl, core, float(c["connected_m"]))
+    if len(inl) >= 3:  # the refit on the connected inliers
+        plane, _ = _refine(P, inl, plane, tol)
+    return len(core), plane, inl
 
 
 def _refine(P: np.ndarray, live: np.ndarray, plane: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -126,16 +175,20 @@ def detect_planes(
     tol, min_in = float(c["inlier_m"]), int(c["min_inliers"])
     planes: list[tuple[np.ndarray, np.ndarray]] = []
     misses = 0
-    while alive.sum() >= min_in and len(planes) < int(c["max_planes"]) and misses < 5:
-        hyp = _hypotheses(P, alive, tree, c, rng)
+    while alive.sum() >= min_in and len(planes) < int(c["max_planes"]) and misses < int(c["max_misses"]):
+        hyp, seeds = _hypotheses(P, alive, tree, c, rng)
         live = np.nonzero(alive)[0]
         if len(hyp) == 0:
             misses += 1
             continue
-        counts = (np.abs(P[live] @ hyp[:, :3].T + hyp[:, 3]) < tol).sum(0)
-        best = int(np.argmax(counts))
-        plane, inl = _refine(P, live, hyp[best], tol)
-        if counts[best] < min_in or len(inl) < min_in:
+        if float(c["connected_m"]) > 0:
+            count, plane, inl = _local_plane(P, alive, tree, hyp, seeds, c)
+        else:
+            counts = (np.abs(P[live] @ hyp[:, :3].T + hyp[:, 3]) < tol).sum(0)
+            best = int(np.argmax(counts))
+            count = int(counts[best])
+            plane, inl = _refine(P, live, hyp[best], tol)
+        if count < min_in or len(inl) < min_in:
             misses += 1
             continue
         planes.append((plane, inl))

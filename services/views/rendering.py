@@ -61,9 +61,9 @@ confs: dict[str, dict[str, Any]] = {
         # (the proxy's depth refined by a plane sweep over the aerial images, services.views.sweep; on
         # isprs's planned views 0.91% median error against the proxy's 0.75%: off)
         "depth": "proxy",
-        # the planner's depth probes: None (the views' depth) or another of the above; bench only, to tell
-        # what the plan owes to the depth from what the colour owes to it (bench/method.py --render-set)
-        "plan_depth": None,
+        # the planner's depth probes: "same" (the views' depth) or another of the above; bench only, to
+        # tell what the plan owes to the depth from what the colour owes to it (bench/method.py --render-set)
+        "plan_depth": "same",
         "stereo": dict(stereo_confs["default"]),
         "sweep": dict(sweep_confs["default"]),
         "orthophoto": dict(orthophoto.confs["default"]),  # services.views.orthophoto, with the views
