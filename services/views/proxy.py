@@ -62,6 +62,17 @@ confs: dict[str, dict[str, Any]] = {
         # from its lowest occupied cell down to the terrain there (the terrain_quantile of the heights of
         # the points within terrain_radius_m), by at most wall_max_drop_m
         "walls_to_terrain": False,
+        # walls under the roofs' outlines (LoD1: city buildings are vertical): every roof (a horizontal
+        # plane at least roof_min_height_m above the terrain) gets a vertical wall under each edge of its
+        # outline (simplified to roof_outline_m) at least wall_min_width_m long, from the roof down to the
+        # terrain, moved onto the facade's own sparse points where at least wall_snap_points of them lie
+        # within wall_snap_m of it (else half a cell out from the roof's grid); the facades the aerial
+        # images see at grazing angles hold too few points for a plane of their own
+        "roof_walls": False,
+        "roof_min_height_m": 2.5,
+        "roof_outline_m": 1.0,
+        "wall_snap_m": 1.5,
+        "wall_snap_points": 5,
         "wall_max_tilt_deg": 8.0,
         "wall_min_width_m": 4.0,
         "wall_max_drop_m": 30.0,
@@ -304,6 +315,124 @@ def extend_to_terrain(
     return np.array([lo[0], lo[1] - pad * cell]), occ
 
 
+def wall_plane(a: np.ndarray, b: np.ndarray, z0: float, z1: float, cell: float) -> Plane:
+    """A vertical wall over the horizontal segment a -> b (world points; their heights ignored) from
+    height z0 up to z1, fully occupied."""
+    up = np.array([0.0, 0.0, 1.0])
+    a = np.array([a[0], a[1], z0], float)
+    e1 = np.array([b[0] - a[0], b[1] - a[1], 0.0])
+    length = float(np.linalg.norm(e1))
+    e1 /= length
+    n = np.cross(e1, up)
+    rows, cols = int(np.ceil((z1 - z0) / cell - 1e-6)), int(round(length / cell))
+    occ = np.ones((max(1, rows), max(1, cols)), bool)
+    ext = np.array([[0, 0], [occ.shape[1], 0], [0, occ.shape[0]], [occ.shape[1], occ.shape[0]]]) * cell
+    corners = a + ext[:, :1] * e1 + ext[:, 1:] * up
+    return Plane(n, float(-n @ a), a, e1, up, np.zeros(2), cell, occ, corners, 0)
+
+
+def roof_walls(planes: list[Plane], P: np.ndarray, terrain: Terrain, conf: dict) -> list[Plane]:
+    """Walls under the outlines of the roofs among `planes` (conf roof_walls), from the roof down to the
+    terrain; each moved onto the sparse points P (N, 3) of its facade where they are enough."""
+    tree = cKDTree(P[:, :2])
+    walls = []
+    min_cos = np.cos(np.radians(float(conf["wall_max_tilt_deg"])))
+    for pl in planes:
+        if abs(float(pl.n[2])) < min_cos:
+            continue
+        cell = pl.cell
+        contours, _ = cv2.findContours(pl.occ.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        for cnt in contours:
+            poly = cv2.approxPolyDP(cnt, float(conf["roof_outline_m"]) / cell, True)[:, 0, :].astype(float)
+            world = (
+                pl.o
+                + (pl.lo[0] + (poly[:, :1] + 0.5) * cell) * pl.e1
+                + (pl.lo[1] + (poly[:, 1:] + 0.5) * cell) * pl.e2
+            )
+            for a, b in zip(world, np.roll(world, -1, 0), strict=True):
+                wall = _roof_wall(a, b, world.mean(0), P, tree, terrain, conf)
+                if wall is not None:
+                    walls.append(wall)
+    return walls
+
+
+def _roof_wall(
+    a: np.ndarray,
+    b: np.ndarray,
+    centre: np.ndarray,
+    P: np.ndarray,
+    tree: cKDTree,
+    terrain: Terrain,
+    conf: dict,
+) -> Plane | None:
+    """The wall under the edge a -> b of a roof outline around `centre` (through its boundary cells'
+    centres), or None when too short, too low or over unknown terrain: the edge moved out half a cell,
+    fitted to the roof's outermost points along it, then onto the facade's own points where they are
+    enough (the sparse points P (N, 3), `tree` of their horizontal positions)."""
+    length = float(np.hypot(*(b - a)[:2]))
+    if length < float(conf["wall_min_width_m"]):
+        return None
+    mid = (a + b) / 2
+    ground, top = float(terrain.height(mid[None, :2])[0]), float(mid[2])
+    if not np.isfinite(ground) or top - ground < float(conf["roof_min_height_m"]):
+        return None
+    cell = float(conf["cell_m"])
+    e1 = np.array([*(b - a)[:2] / length, 0.0])
+    n = np.array([e1[1], -e1[0], 0.0])
+    out = n if (mid - centre) @ n > 0 else -n  # the outline is convex: its cells are filled to their hull
+    a, b = a + 0.5 * cell * out, b + 0.5 * cell * out
+    Q = P[np.asarray(tree.query_ball_point(mid[:2], length / 2 + 2.0), int)]
+    if len(Q):
+        a, b = _fit_rim(a, b, out, Q, top, conf)
+        a, b = _snap_to_facade(a, b, out, Q, ground, top, conf)
+    return wall_plane(a, b, ground, top, cell)
+
+
+def _fit_rim(
+    a: np.ndarray, b: np.ndarray, out: np.ndarray, Q: np.ndarray, top: float, conf: dict
+) -> tuple[np.ndarray, np.ndarray]:
+    """The roof edge a -> b (outward normal `out`) as the line through the roof's outermost points Q
+    (N, 3) along it: its angle from a line fitted to the 98th percentile of their offsets across it per
+    metre along it, its offset the 99th percentile of all their offsets from that line; unchanged with
+    fewer than three metres of them."""
+    cell = float(conf["cell_m"])
+    length = float(np.hypot(*(b - a)[:2]))
+    e1 = (b - a) / np.linalg.norm(b - a)
+    along, dist = (Q - a) @ e1, (Q - a) @ out
+    rim = (along > 0) & (along < length) & (np.abs(Q[:, 2] - top) < 0.3) & (np.abs(dist) < 2.0 * cell)
+    bins = np.floor(along[rim]).astype(int)
+    xs, ys = [], []
+    for k in np.unique(bins):
+        d = dist[rim][bins == k]
+        if len(d) >= 2:
+            xs.append(k + 0.5)
+            ys.append(float(np.quantile(d, 0.98)))
+    if len(xs) < 3:
+        return a, b
+    slope = float(np.polyfit(xs, ys, 1)[0])  # each metre's percentile is biased inwards alike: the angle
+    offset = float(np.quantile(dist[rim] - slope * along[rim], 0.99))  # the edge: from all of them at once
+    return a + offset * out, b + (offset + slope * length) * out
+
+
+def _snap_to_facade(
+    a: np.ndarray, b: np.ndarray, out: np.ndarray, Q: np.ndarray, ground: float, top: float, conf: dict
+) -> tuple[np.ndarray, np.ndarray]:
+    """The wall a -> b moved across itself onto the median of the facade's points among Q (N, 3): those
+    within wall_snap_m of it, between the street and the roof; unchanged with fewer than
+    wall_snap_points of them."""
+    length = float(np.linalg.norm((b - a)[:2]))
+    e1 = np.array([*(b - a)[:2] / length, 0.0])
+    n = np.array([e1[1], -e1[0], 0.0])
+    n = n if n @ out > 0 else -n
+    along, dist = (Q - a) @ e1, (Q - a) @ n
+    on = (along > 0) & (along < length) & (np.abs(dist) < float(conf["wall_snap_m"]))
+    on &= (Q[:, 2] > ground + 0.5) & (Q[:, 2] < top - 0.5)  # not the roof's or the street's points
+    if on.sum() < int(conf["wall_snap_points"]):
+        return a, b
+    shift = float(np.median(dist[on]))
+    return a + shift * n, b + shift * n
+
+
 class PlaneProxy:
     """The planes of an aerial model, ray cast at any pinhole camera of its frame."""
 
@@ -315,8 +444,15 @@ class PlaneProxy:
     def from_points(cls, P: np.ndarray, conf: dict | None = None) -> PlaneProxy:
         c = {**confs["default"], **(conf or {})}
         found = detect_planes(P, c)
-        terrain = Terrain(P, c) if c["walls_to_terrain"] else None
-        return cls([make_plane(P[inl], plane, c, terrain) for plane, inl in found], c)
+        terrain = Terrain(P, c) if c["walls_to_terrain"] or c["roof_walls"] else None
+        planes = [
+            make_plane(P[inl], plane, c, terrain if c["walls_to_terrain"] else None) for plane, inl in found
+        ]
+        if c["roof_walls"] and terrain is not None:
+            walls = roof_walls(planes, P, terrain, c)
+            logger.info("plane proxy: %d walls under the roofs' outlines", len(walls))
+            planes += walls
+        return cls(planes, c)
 
     @classmethod
     def from_model(cls, model: str | Path | pycolmap.Reconstruction, conf: dict | None = None) -> PlaneProxy:
