@@ -63,13 +63,15 @@ confs: dict[str, dict[str, Any]] = {
         # the points within terrain_radius_m), by at most wall_max_drop_m
         "walls_to_terrain": False,
         # walls under the roofs' outlines (LoD1: city buildings are vertical): every roof (a horizontal
-        # plane at least roof_min_height_m above the terrain) gets a vertical wall under each edge of its
+        # plane at least roof_min_height_m above the terrain, roof_min_area_m2 large, nothing standing on
+        # it) gets a vertical wall under each edge of its
         # outline (simplified to roof_outline_m) at least wall_min_width_m long, from the roof down to the
         # terrain, moved onto the facade's own sparse points where at least wall_snap_points of them lie
         # within wall_snap_m of it (else half a cell out from the roof's grid); the facades the aerial
         # images see at grazing angles hold too few points for a plane of their own
         "roof_walls": False,
         "roof_min_height_m": 2.5,
+        "roof_min_area_m2": 40.0,
         "roof_outline_m": 1.0,
         "wall_snap_m": 1.5,
         "wall_snap_points": 5,
@@ -343,6 +345,10 @@ def roof_walls(planes: list[Plane], P: np.ndarray, terrain: Terrain, conf: dict)
         cell = pl.cell
         contours, _ = cv2.findContours(pl.occ.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         for cnt in contours:
+            if cv2.contourArea(cnt) * cell**2 < float(conf["roof_min_area_m2"]) or not _open_above(
+                pl, cnt, P, tree
+            ):
+                continue  # a balcony, a canopy, a car: not a building's roof
             poly = cv2.approxPolyDP(cnt, float(conf["roof_outline_m"]) / cell, True)[:, 0, :].astype(float)
             world = (
                 pl.o
@@ -354,6 +360,24 @@ def roof_walls(planes: list[Plane], P: np.ndarray, terrain: Terrain, conf: dict)
                 if wall is not None:
                     walls.append(wall)
     return walls
+
+
+def _open_above(roof: Plane, contour: np.ndarray, P: np.ndarray, tree: cKDTree) -> bool:
+    """Whether nothing stands on the horizontal plane `roof` within its outline `contour` (cells): at
+    most 30% of the sparse points P (N, 3) over it lie more than 1 m above it (a balcony or a
+    canopy has its facade's points above it; a roof has the sky)."""
+    inside = np.zeros_like(roof.occ, np.uint8)
+    cv2.drawContours(inside, [contour], -1, 1, -1)
+    ii, jj = np.nonzero(inside)
+    cells = roof.o + (roof.lo[0] + (jj[:, None] + 0.5) * roof.cell) * roof.e1
+    cells = cells + (roof.lo[1] + (ii[:, None] + 0.5) * roof.cell) * roof.e2
+    near = np.unique(
+        np.concatenate([np.asarray(x, int) for x in tree.query_ball_point(cells[:, :2], roof.cell * 0.71)])
+    )
+    if len(near) == 0:
+        return True
+    height = P[near, 2] - float(cells[:, 2].mean())
+    return float(np.mean(height > 1.0)) <= 0.3
 
 
 def _roof_wall(
