@@ -122,8 +122,9 @@ def page_times(base: str, job_id: str, runs: int) -> dict[str, list[float]]:
     d = webdriver.Chrome(options=opts, service=Service(shutil.which("chromedriver")))
     pages = {
         "job": (f"#/jobs/{job_id}", "return document.querySelectorAll('#stages tr.stage-row').length >= 7"),
-        "map": (f"#/jobs/{job_id}/map",
-                "return document.querySelectorAll('#ground-images tr.ground-row').length > 0"),
+        "map": (f"#/jobs/{job_id}/map",  # the map drawn: its camera markers (Leaflet) and the table
+                "return document.querySelectorAll('#map path.cam').length > 0"
+                " && document.querySelectorAll('#ground-images tr.ground-row').length > 0"),
         "ground": (f"#/jobs/{job_id}/ground/G0000.jpg",
                    "const i = document.getElementById('ground-photo');"
                    "return !!(i && i.naturalWidth)"),

@@ -37,7 +37,7 @@ logger = logging.getLogger("midview.views.orthophoto")
 confs: dict[str, dict[str, Any]] = {
     "default": {
         "enabled": True,
-        "max_size_px": 2048,  # the longer side of the rendered nadir view and of the orthophoto
+        "max_size_px": 1536,  # the longer side of the rendered nadir view and of the orthophoto
         "altitude_m": 1000.0,  # the nadir view's height above the site (within the renderer's max depth)
         "extent_quantile": 0.02,  # the site: these quantiles of the sparse points' east and north
         "margin_m": 5.0,
