@@ -247,6 +247,11 @@ class JobCreate(In):
 
 class JobRerun(In):
     from_stage: Stage | None = Field(None, description="First stage to run again; default: all")
+    force: bool = Field(
+        False,
+        description="Run the stages from from_stage on again even where their inputs and settings are "
+        "unchanged (otherwise those are skipped as up to date): their results are computed anew",
+    )
 
 
 class StageRunOut(Out):
@@ -279,6 +284,9 @@ class JobOut(Out):
     )
     error: str | None
     attempt: int
+    force_from: str | None = Field(
+        None, description="This attempt runs the stages from this one on even where they are up to date"
+    )
     key: str | None = Field(None, description="The client's idempotency key")
     campaign_id: str | None = None
     created_at: datetime

@@ -345,8 +345,10 @@ class MidviewClient:
     def cancel(self, job_id: str) -> Job:
         return self._json("POST", f"/jobs/{job_id}/cancel")
 
-    def rerun(self, job_id: str, from_stage: str | None = None) -> Job:
-        return self._json("POST", f"/jobs/{job_id}/rerun", json={"from_stage": from_stage})
+    def rerun(self, job_id: str, from_stage: str | None = None, force: bool = False) -> Job:
+        """Run a finished job again from `from_stage` (None: the start); `force`: even the stages whose
+        inputs are unchanged (otherwise skipped as up to date)."""
+        return self._json("POST", f"/jobs/{job_id}/rerun", json={"from_stage": from_stage, "force": force})
 
     def events(self, job_id: str) -> Iterator[tuple[str, dict[str, Any]]]:
         """The job's server-sent events as (event, data) until the stream ends."""

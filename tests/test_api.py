@@ -701,6 +701,7 @@ def test_job_create_status_cancel_rerun(api_env, make_jpeg) -> None:
     r = c.post(f"/jobs/{jid}/rerun", json={"from_stage": "train_splat"}, headers=t.headers)
     assert r.status_code == 200, r.text
     assert r.json()["status"] == "queued" and r.json()["attempt"] == 2 and r.json()["progress"] == 0
+    assert r.json()["force_from"] is None
     assert disp.calls[-1] == ("submit", jid, "train_splat")
     assert len(c.get(f"/jobs/{jid}", headers=t.headers).json()["stages"]) == 1  # history kept
 
@@ -708,8 +709,14 @@ def test_job_create_status_cancel_rerun(api_env, make_jpeg) -> None:
         crud.set_job_status(s, jid, JobStatus.failed, error="boom")
         s.commit()
     assert c.post(f"/jobs/{jid}/cancel", headers=t.headers).status_code == 409  # failed is final
+    r = c.post(f"/jobs/{jid}/rerun", json={"force": True}, headers=t.headers)  # forced, from the start
+    assert r.status_code == 200 and r.json()["force_from"] == "aerial_sfm" and r.json()["attempt"] == 3
+    with api_env.session() as s:
+        crud.set_job_status(s, jid, JobStatus.failed, error="boom")
+        s.commit()
     assert c.post(f"/jobs/{jid}/rerun", headers=t.headers).status_code == 200  # no body: from the start
     assert disp.calls[-1] == ("submit", jid, None)
+    assert c.get(f"/jobs/{jid}", headers=t.headers).json()["force_from"] is None  # not forced this time
 
     disp.fail = RuntimeError("broker unreachable")
     try:

@@ -41,7 +41,7 @@ from shared.db.session import (
 )
 
 REPO = Path(__file__).resolve().parents[1]
-HEAD = "0006"
+HEAD = "0007"
 TABLES = {
     "tenants",
     "api_keys",

@@ -446,7 +446,7 @@ def test_embedded_dispatcher_runs_a_job(tiny_survey, tmp_path):
         print(f"embedded aerial_sfm job: {time.monotonic() - t0:.1f} s")
         assert job["status"] == "succeeded", job
         assert [(st["stage"], st["status"]) for st in job["stages"]] == [("aerial_sfm", "succeeded")]
-        assert job["metrics"]["aerial_sfm"]["NRI"].endswith("/10")
+        assert job["metrics"]["aerial_sfm"]["NRI"].endswith("/20")
         names = {a["name"] for a in client.get(f"/jobs/{job['id']}/artifacts", headers=headers).json()}
         assert {"sfm/report.json", "sfm/sparse/images.bin", "cameras.json"} <= names
         # rerun: the stage is up to date (same inputs, same times): skipped
@@ -454,6 +454,12 @@ def test_embedded_dispatcher_runs_a_job(tiny_survey, tmp_path):
         job = wait_for_job(client, headers, job["id"], 60)
         assert job["status"] == "succeeded" and job["attempt"] == 2
         assert [st["status"] for st in job["stages"]] == ["succeeded", "skipped"]
+        # forced: the stage runs again although it is up to date
+        r = client.post(f"/jobs/{job['id']}/rerun", json={"force": True}, headers=headers)
+        assert r.status_code == 200, r.text
+        job = wait_for_job(client, headers, job["id"], 120)
+        assert job["status"] == "succeeded" and job["attempt"] == 3
+        assert [st["status"] for st in job["stages"]] == ["succeeded", "skipped", "succeeded"]
         # cancel while it runs: the runner stops at the next report, the job stays cancelled
         opts = {
             "stages": ["aerial_sfm", "train_splat"],

@@ -182,11 +182,33 @@ class JobInfo:
     prefix: str  # the job's storage prefix (tenants/T/projects/P/jobs/J/)
     stages: list[str]
     run_id: str | None = None
+    forced: bool = False  # run the stage even where it is up to date (a forced rerun)
 
 
 def _info(row: Job) -> JobInfo:
     options = JobOptions.model_validate(row.options or {})
     return JobInfo(row.id, jobsync.job_storage_prefix(row), list(options.stages))
+
+
+def _forced(session: Session, row: Job, stage: str) -> bool:
+    """Whether this attempt runs `stage` even where it is up to date: a forced rerun from it or an earlier
+    stage (Job.force_from), and no run of it in this attempt has succeeded yet (a task delivered again
+    after its stage succeeded skips it)."""
+    if row.force_from is None or row.force_from not in STAGES or stage not in STAGES:
+        return False
+    if list(STAGES).index(stage) < list(STAGES).index(row.force_from):
+        return False
+    done = session.scalar(
+        sa.select(sa.func.count())
+        .select_from(StageRun)
+        .where(
+            StageRun.job_id == row.id,
+            StageRun.attempt == row.attempt,
+            StageRun.stage == stage,
+            StageRun.status == StageStatus.succeeded,
+        )
+    )
+    return not done
 
 
 def _live_row(session: Session, job_id: str) -> Job:
@@ -246,6 +268,7 @@ def _begin(
     with ctx.session() as s:
         row = _live_row(s, job_id)
         info = _info(row)
+        info.forced = _forced(s, row, stage)
         if open_run:
             info.run_id = _open_run(s, row, stage, worker or worker_name(), node).id
     return info
@@ -393,7 +416,7 @@ def execute_stage(
         job = _materialize(ctx, info)
         report = ProgressReporter(ctx, info)
         # after the fan-out, match_views finds every view up to date and only writes its marker
-        marker = pipeline.run_stage(job, stage, progress=report)
+        marker = pipeline.run_stage(job, stage, progress=report, force=info.forced)
         _push_stage(ctx, info, job, stage)
         with ctx.session() as s:
             _live_row(s, job_id)
@@ -447,7 +470,7 @@ def prepare_fan_out(
     try:
         job = _materialize(ctx, info)
         report = ProgressReporter(ctx, info)
-        if pipeline.is_done(job, stage):  # nothing to fan out: the stage task will skip it
+        if not info.forced and pipeline.is_done(job, stage):  # nothing to fan out: the stage task skips it
             report(stage, 0.0, "up to date")
             return [], fan.queue(job)
         report(stage, 0.0, "preparing the units")
@@ -490,6 +513,8 @@ def execute_unit(
         return sum(fan.marker(n) in keys for n in names)
 
     before = done()
+    if info.forced:  # the unit's result from an earlier attempt is computed anew
+        (job.root / fan.marker(unit)).unlink(missing_ok=True)
     t0 = time.perf_counter()
     paths = fan.unit(job, unit, lambda f, m: reporter(stage, (before + f) / max(len(names), 1), m))
     seconds = time.perf_counter() - t0

@@ -61,6 +61,7 @@ def job_fields(job: Any) -> dict[str, Any]:
         outcome=metrics.get("outcome"),
         error=job.error,
         attempt=job.attempt,
+        force_from=getattr(job, "force_from", None),
         key=job.client_key,
         campaign_id=job.campaign_id,
         created_at=job.created_at,
@@ -358,19 +359,26 @@ def rerun_job(
     dispatcher: DispatcherDep,
     body: JobRerun | None = None,
 ) -> JobOut:
-    """Run a finished job again (attempt + 1), from from_stage on or from the start."""
+    """Run a finished job again (attempt + 1), from from_stage on or from the start; stages that are up
+    to date are skipped unless `force`."""
     try:
-        return job_out(rerun(session, dispatcher, job, body.from_stage if body else None))
+        return job_out(
+            rerun(session, dispatcher, job, body.from_stage if body else None, bool(body and body.force))
+        )
     finally:
         request.app.state.status_cache.forget(job.id)
 
 
-def rerun(session: Session, dispatcher: Dispatcher, job: Job, from_stage: str | None) -> Job:
-    """Queue a finished job again from from_stage (None: from the start); 422 for a stage the job does
-    not run, 409 when its inputs changed, 503 when it cannot be queued."""
-    if from_stage is not None:
+def rerun(
+    session: Session, dispatcher: Dispatcher, job: Job, from_stage: str | None, force: bool = False
+) -> Job:
+    """Queue a finished job again from from_stage (None: from the start), with `force` running those
+    stages even where they are up to date; 422 for a stage the job does not run, 409 when its inputs
+    changed, 503 when it cannot be queued."""
+    stages: list[str] = []
+    if from_stage is not None or force:
         try:
-            JobOptions.model_validate(job.options or {}).stages_from(from_stage)
+            stages = JobOptions.model_validate(job.options or {}).stages_from(from_stage)
         except ValueError as e:  # pydantic's ValidationError included
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(e)) from None
     changed = crud.inputs_changed(session, job)
@@ -379,7 +387,7 @@ def rerun(session: Session, dispatcher: Dispatcher, job: Job, from_stage: str | 
             status.HTTP_409_CONFLICT,
             f"the job's inputs changed since it was created ({'; '.join(changed[:10])}): create a new job",
         )
-    job = crud.rerun_job(session, job.id)  # by id: the row is locked and reloaded
+    job = crud.rerun_job(session, job.id, stages[0] if force and stages else None)  # by id: locked, reloaded
     session.commit()
     _submit(session, dispatcher, job, from_stage)
     return job

@@ -464,8 +464,10 @@ async function jobPage(jobId) {
   } }, "Cancel");
   const from = h("select", { id: "rerun-from" }, h("option", { value: "" }, "from the start"),
     job.options.stages.map((st) => h("option", { value: st }, `from ${st}`)));
+  // forced: the stages run again even where their inputs are unchanged (otherwise "skipped: up to date")
+  const force = h("label", { class: "muted", title: "run the stages again even where nothing changed" }, h("input", { type: "checkbox", id: "rerun-force" }), " force");
   const rerun = h("button", { class: "secondary", id: "rerun-job", onclick: async () => {
-    try { await api("POST", `/jobs/${jobId}/rerun`, { from_stage: from.value || null }); jobPage(jobId); } catch (x) { toast(x.message); }
+    try { await api("POST", `/jobs/${jobId}/rerun`, { from_stage: from.value || null, force: force.firstChild.checked }); jobPage(jobId); } catch (x) { toast(x.message); }
   } }, "Rerun");
   const logLine = (t) => { log.append(`${new Date().toLocaleTimeString()}  ${t}\n`); log.scrollTop = log.scrollHeight; };
   const render = async () => {
@@ -494,7 +496,7 @@ async function jobPage(jobId) {
   };
   main.replaceChildren(
     h("h1", {}, `Job ${jobId.slice(0, 8)} of ${project.name}`), head,
-    h("section", {}, h("div", { class: "row" }, status, result, pct, SNAP ? "" : [cancel, from, rerun]), h("p"), overall, outcome,
+    h("section", {}, h("div", { class: "row" }, status, result, pct, SNAP ? "" : [cancel, from, force, rerun]), h("p"), overall, outcome,
       h("table", {}, h("thead", {}, h("tr", {}, h("th", {}, "stage"), h("th", {}, "status"), h("th", {}, "progress"), h("th", { class: "num" }, "time"), h("th", {}, ""))), stages)),
     grid,
     SNAP && SNAP.evaluation ? evaluationSection(SNAP.evaluation) : "",

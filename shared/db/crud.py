@@ -598,8 +598,9 @@ def update_job_results(
     return job
 
 
-def rerun_job(session: Session, job: Job | str) -> Job:
-    """Reset a finished job to queued for another attempt (attempt + 1); its stage runs stay as history."""
+def rerun_job(session: Session, job: Job | str, force_from: str | None = None) -> Job:
+    """Reset a finished job to queued for another attempt (attempt + 1); its stage runs stay as history.
+    force_from: the attempt runs the stages from this one on again even where they are up to date."""
     job = _job(session, job)
     if job.status not in TERMINAL_JOB_STATUSES:
         raise InvalidTransitionError(f"job {job.id} is {job.status.value}; only a finished job can rerun")
@@ -610,6 +611,7 @@ def rerun_job(session: Session, job: Job | str) -> Job:
     job.error = None
     job.started_at = job.finished_at = None
     job.celery_root_id = None
+    job.force_from = force_from
     job.timings, job.metrics = {}, {}
     session.flush()
     return job

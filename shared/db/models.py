@@ -285,6 +285,8 @@ class Job(Base):
     inputs: Mapped[dict[str, Any] | None]
     error: Mapped[str | None] = mapped_column(sa.Text)
     attempt: Mapped[int] = mapped_column(default=1)
+    # this attempt runs the stages from this one on again even where they are up to date (a forced rerun)
+    force_from: Mapped[str | None] = mapped_column(sa.String(64))
     celery_root_id: Mapped[str | None] = mapped_column(sa.String(255))
     # the client's idempotency key: a second creation with it returns this job
     client_key: Mapped[str | None] = mapped_column(sa.String(128))
