@@ -254,6 +254,7 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     _wait(d, lambda d: len(_all(d, "#artifacts tr.artifact-row")) >= 10, what="the artifacts")
     # the named products, one zip each, above the list of files
     assert _all(d, "#bundle-gis") and _all(d, "#bundle-colmap")
+    assert not _by(d, "#rerun-force").is_selected()  # a rerun skips what is up to date unless forced
     import io
     import zipfile
 
