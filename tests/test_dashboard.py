@@ -298,6 +298,33 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     ]
     assert splat["total"] == metrics["train_splat"]["num_gaussians"] and 0 < splat["points"] <= splat["total"]
     d.save_screenshot(str(shots / "3d-1280.png"))
+
+    # a click on a camera picks it (the camera under the pointer), on a ground camera opens its page
+    def click_camera(name: str) -> None:  # a pointer pressed and released where the camera is drawn
+        d.execute_script(
+            "const c = document.querySelector('#view3d canvas'), r = c.getBoundingClientRect();"
+            "const [x, y] = window.midview3dScreenOf(arguments[0]);"
+            "for (const type of ['pointerdown', 'pointerup']) c.dispatchEvent(new PointerEvent(type,"
+            " {clientX: r.left + x, clientY: r.top + y, bubbles: true, pointerId: 1, isPrimary: true}))",
+            name,
+        )
+
+    aerial_cam = next(n for n in drawn["names"] if n.startswith("aerial/"))
+    click_camera(aerial_cam)
+    debug = d.execute_script(
+        "const c = document.querySelector('#view3d canvas'), r = c.getBoundingClientRect();"
+        "return [window.midview3dScreenOf(arguments[0]), r.width, r.height, c.width, c.height]",
+        aerial_cam,
+    )
+    assert d.execute_script("return window.midview3dPicked") == aerial_cam, debug
+    assert "/3d" in d.current_url
+    ground_cams = [n for n, r in report["ground"].items() if r["registered"]]
+    if ground_cams:
+        click_camera(ground_cams[0])
+        opened = "a ground page from the 3D view"
+        _wait(d, lambda d: "/ground/" in d.current_url and _all(d, "#ground-photo"), 30, opened)
+        d.back()
+        _wait(d, lambda d: d.execute_script("return window.midview3d"), 60, "the 3D view again")
     d.back()
     _wait(d, lambda d: _all(d, "#ground-images tr.ground-row"), 30, "the map again")
     # a ground camera's marker opens its page

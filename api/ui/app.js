@@ -552,6 +552,8 @@ function arrowHead(a, b, len) {
   const at = (x, y) => [b[0] + y / 110540, b[1] + x / (111320 * k)];
   return [at(0, 0), at(-len * ux - 0.5 * len * uy, -len * uy + 0.5 * len * ux), at(-len * ux + 0.5 * len * uy, -len * uy - 0.5 * len * ux)];
 }
+// the POS-to-registered offset's colour by its length: within 1 m, 1-3 m, farther
+const offsetColour = (m) => m <= 1 ? "#2e7d32" : m <= 3 ? "#e8890c" : "#c62828";
 async function mapPage(jobId) {
   const job = await api("GET", `/jobs/${jobId}`);
   const project = await api("GET", `/projects/${job.project_id}`);
@@ -569,7 +571,7 @@ async function mapPage(jobId) {
     h("section", {}, h("div", { class: "legend" }, h("span", {}, h("i", { class: "dot", style: "background:#2457c5" }), "aerial, registered"),
       h("span", {}, h("i", { class: "dot", style: "background:#1a7f37" }), "ground, registered"),
       h("span", {}, h("i", { class: "dot", style: "background:#c62828" }), "ground, not registered (at its POS)"),
-      h("span", {}, h("i", { class: "dot", style: "border:1px solid #98a2b3" }), "POS; orange arrow: POS to registered position"),
+      h("span", {}, h("i", { class: "dot", style: "border:1px solid #98a2b3" }), "POS; arrow: POS to registered position (green within 1 m, orange 1-3 m, red farther)"),
       orthoDoc ? h("span", { class: "muted" }, "background: the survey's orthophoto (from the aerial images)") : ""), holder),
     h("section", {}, h("h2", {}, `Ground images (${ground.filter((q) => q.p.registered).length} of ${ground.length} registered)`),
       h("table", { id: "ground-images" }, h("thead", {}, h("tr", {}, h("th", {}, "image"), h("th", {}, "registered"), h("th", { class: "num" }, "to POS"), h("th", { class: "num hide-phone" }, "σ"), h("th", {}, "cause"))),
@@ -606,9 +608,11 @@ async function mapPage(jobId) {
     extent.push([q.lat, q.lon]);
     if (r) {
       const a = [r.lat, r.lon], b = [q.lat, q.lon];
-      L.polyline([a, b], { color: "#e8890c", weight: 2, className: "error-line", interactive: false }).addTo(cams);
-      const len = Math.min(1.0, 0.3 * Math.hypot((b[0] - a[0]) * 110540, (b[1] - a[1]) * 111320 * Math.cos((b[0] * Math.PI) / 180)));
-      if (len > 0.02) L.polygon(arrowHead(a, b, len), { color: "#e8890c", weight: 1, fillOpacity: 1, className: "error-arrow", interactive: false }).addTo(cams);
+      const metres = Math.hypot((b[0] - a[0]) * 110540, (b[1] - a[1]) * 111320 * Math.cos((b[0] * Math.PI) / 180));
+      const tone = offsetColour(metres);
+      L.polyline([a, b], { color: tone, weight: 2, className: "error-line", interactive: false }).addTo(cams);
+      const len = Math.min(1.0, 0.3 * metres);
+      if (len > 0.02) L.polygon(arrowHead(a, b, len), { color: tone, weight: 1, fillOpacity: 1, className: "error-arrow", interactive: false }).addTo(cams);
     }
     const m = L.circleMarker([q.lat, q.lon], { radius: q.p.set === "ground" ? 7 : 4, color: "#fff", weight: 1, fillColor: colour(q), fillOpacity: 1, className: `cam ${q.p.set}${q.p.set === "ground" ? " link" : ""}` })
       .bindTooltip(`${q.p.name}${q.p.to_pos_m !== null ? ": " + q.p.to_pos_m.toFixed(2) + " m from its POS" : ""}`).addTo(cams);
@@ -730,9 +734,15 @@ async function page3d(jobId) {
   const points = view.parseLas(las), cams = view.parseOpk(new TextDecoder().decode(opk));
   info.textContent = `${points.count} points, ${cams.filter((c) => c.set === "aerial").length} aerial and ${cams.filter((c) => c.set === "ground").length} ground cameras`;
   if (!view.webglAvailable()) { info.textContent += " — this browser has no WebGL to draw them"; window.midview3d = { points: points.count, cameras: cams.length, webgl: false }; return; }
-  const stop = view.draw(box, points, cams);
+  // a ground camera clicked opens its page
+  const stop = view.draw(box, points, cams, (name) => {
+    window.midview3dPicked = name;
+    info.textContent = `${name}${name.startsWith("ground/") ? "" : " (an aerial camera)"}`;
+    if (name.startsWith("ground/")) location.hash = `#/jobs/${jobId}/ground/${name.slice(7).split("/").map(encodeURIComponent).join("/")}`;
+  });
   leaving.push(stop);
   window.midview3d = stop.report;
+  window.midview3dScreenOf = stop.screenOf;  // where a camera is drawn (tests click it)
   // the aerial 3DGS (its Gaussians' centres and colours, in the aerial model's local frame), when it is small
   // enough to fetch
   const splatBox = h("div", { id: "splat3d" }), splatInfo = h("p", { class: "muted", id: "splat3d-info" });

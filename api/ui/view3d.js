@@ -84,8 +84,9 @@ export function bulk(xyz, n) {
   return { centre, extent: Math.max(1e-3, quantile(offsets, 0.95)) };
 }
 
-/** Draw points and cameras into `container`; returns a function that stops the rendering. */
-export function draw(container, las, cams) {
+/** Draw points and cameras into `container`; returns a function that stops the rendering. A click (not a
+ * drag) on a camera calls onPick(its name); stop.screenOf(name) is where a camera is drawn (canvas px). */
+export function draw(container, las, cams, onPick = null) {
   const n = las.count;
   const { centre, extent } = bulk(las.xyz, n);
   const pos = new Float32Array(3 * n);
@@ -111,7 +112,8 @@ export function draw(container, las, cams) {
   const camMarkers = new THREE.BufferGeometry();
   camMarkers.setAttribute("position", new THREE.BufferAttribute(new Float32Array(cams.flatMap((c) => c.c.map((x, k) => x - centre[k]))), 3));
   camMarkers.setAttribute("color", new THREE.BufferAttribute(new Float32Array(cams.flatMap((c) => c.set === "aerial" ? [0.14, 0.34, 0.77] : [0.1, 0.5, 0.22])), 3));
-  scene.add(new THREE.Points(camMarkers, new THREE.PointsMaterial({ size: 7, sizeAttenuation: false, vertexColors: true })));
+  const markers = new THREE.Points(camMarkers, new THREE.PointsMaterial({ size: 7, sizeAttenuation: false, vertexColors: true }));
+  scene.add(markers);
 
   const width = container.clientWidth || 800, height = Math.max(320, Math.min(640, width * 0.6));
   const renderer = new THREE.WebGLRenderer({ antialias: true });
@@ -126,9 +128,27 @@ export function draw(container, las, cams) {
   let running = true;
   const loop = () => { if (!running) return; controls.update(); renderer.render(scene, camera); requestAnimationFrame(loop); };
   loop();
+  // a click on a camera: the nearest marker within 8 px of the pointer (a drag turns the view instead)
+  const screenOf = (i) => {
+    const p = new THREE.Vector3(...cams[i].c.map((x, k) => x - centre[k])).project(camera);
+    return [(p.x + 1) / 2 * width, (1 - p.y) / 2 * height];
+  };
+  let down = null;
+  renderer.domElement.addEventListener("pointerdown", (e) => { down = [e.offsetX, e.offsetY]; });
+  renderer.domElement.addEventListener("pointerup", (e) => {
+    if (!onPick || !down || Math.hypot(e.offsetX - down[0], e.offsetY - down[1]) > 4) return;
+    let best = null;
+    cams.forEach((c, i) => {
+      const [x, y] = screenOf(i), d = Math.hypot(x - e.offsetX, y - e.offsetY);
+      if (d <= 8 && (!best || d < best.d)) best = { d, name: c.name };
+    });
+    if (best) onPick(best.name);
+  });
+  void markers;
   const report = { points: n, extent, cameras: cams.length, aerial: cams.filter((c) => c.set === "aerial").length,
-    ground: cams.filter((c) => c.set === "ground").length, canvas: renderer.domElement };
+    ground: cams.filter((c) => c.set === "ground").length, names: cams.map((c) => c.name), canvas: renderer.domElement };
   const stop = () => { running = false; renderer.dispose(); };
   stop.report = report;
+  stop.screenOf = (name) => { const i = cams.findIndex((c) => c.name === name); return i < 0 ? null : screenOf(i); };
   return stop;
 }
