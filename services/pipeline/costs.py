@@ -20,15 +20,15 @@ from services.pipeline.options import JobOptions
 # (median, max over the runs): bench/pipeline_time.py --fit on docs/results/pipeline-time.json
 FIT: dict[str, Any] = {
     "seconds_per_unit": {
-        "aerial_sfm": 4.547,
-        "train_splat": 0.1001,
-        "plan_views": 0.7706,
-        "render_views": 2.4668,
-        "match_views": 6.6149,
-        "reduce": 0.4172,
-        "combined_sfm": 3.4998,
+        "aerial_sfm": 4.3182,
+        "train_splat": 0.1017,
+        "plan_views": 0.7765,
+        "render_views": 2.4899,
+        "match_views": 6.6495,
+        "reduce": 0.4213,
+        "combined_sfm": 3.4986,
     },
-    "relative_error": {"median": 0.193, "max": 0.848},
+    "relative_error": {"median": 0.209, "max": 0.759},
     "runs": 3,
 }
 PROFILES_MEASURED = ("cpu",)
