@@ -585,6 +585,9 @@ async function mapPage(jobId) {
   if (!L) { holder.replaceChildren(h("p", { class: "bad" }, "Leaflet is missing (scripts/setup.sh installs it): the map cannot be drawn")); return; }
   // no tile server: the survey's own orthophoto is the background (the map works offline and on any network)
   const map = L.map(holder, { zoomSnap: 0.25, maxZoom: 24, attributionControl: false });
+  // the view first (Leaflet draws no layer on a map without one): every POS and registered camera
+  const extent = [...pts.filter((q) => q.p.registered).map((q) => [q.lat, q.lon]), ...pos.map((r) => [r.lat, r.lon])];
+  if (extent.length) map.fitBounds(L.latLngBounds(extent).pad(0.1)); else map.setView([0, 0], 2);
   L.control.scale({ imperial: false, maxWidth: 160 }).addTo(map);
   const overlays = {};
   if (orthoDoc && orthoUrl) {
@@ -600,12 +603,10 @@ async function mapPage(jobId) {
   const cams = L.layerGroup().addTo(map);
   const colour = (q) => q.p.set === "aerial" ? "#2457c5" : q.p.registered ? "#1a7f37" : "#c62828";
   const open = (name) => () => { if (name.startsWith("ground/")) location.hash = `#/jobs/${jobId}/ground/${name.slice(7).split("/").map(encodeURIComponent).join("/")}`; };
-  const extent = [];
   for (const q of pts) {
     const r = posBy[q.p.name];
-    if (r) { L.circleMarker([r.lat, r.lon], { radius: 5, color: "#98a2b3", weight: 1.5, fill: false, className: "pos", interactive: false }).addTo(cams); extent.push([r.lat, r.lon]); }
+    if (r) L.circleMarker([r.lat, r.lon], { radius: 5, color: "#98a2b3", weight: 1.5, fill: false, className: "pos", interactive: false }).addTo(cams);
     if (!q.p.registered) continue;
-    extent.push([q.lat, q.lon]);
     if (r) {
       const a = [r.lat, r.lon], b = [q.lat, q.lon];
       const metres = Math.hypot((b[0] - a[0]) * 110540, (b[1] - a[1]) * 111320 * Math.cos((b[0] * Math.PI) / 180));
@@ -625,7 +626,6 @@ async function mapPage(jobId) {
   }
   overlays.cameras = cams;
   L.control.layers(null, overlays, { collapsed: false }).addTo(map);
-  map.fitBounds(L.latLngBounds(extent).pad(0.1));
 }
 function loadImage(url) { return new Promise((res, rej) => { const im = new Image(); im.onload = () => res(im); im.onerror = rej; im.src = url; }); }
 // a match's colour: by the ground truth where the report has it (synthetic surveys), else by verification
