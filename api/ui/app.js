@@ -532,16 +532,16 @@ async function jobPage(jobId) {
 }
 
 // -- the map and the ground images -----------------------------------------------------------------
-async function layerOf(jobId, name) {  // a JSON artifact of the job, or null
-  const arts = await api("GET", `/jobs/${jobId}/artifacts`);
+async function layerOf(jobId, name, list = null) {  // a JSON artifact of the job (from its list when given), or null
+  const arts = list || await api("GET", `/jobs/${jobId}/artifacts`);
   const a = arts.find((x) => x.name === name);
   if (!a) return null;
   const r = isApiUrl(a.download_url) ? await api("GET", a.download_url, undefined, true) : await fetch(a.download_url);
   return r.json();
 }
 const camerasOf = (jobId) => layerOf(jobId, "combined/gis/cameras.geojson");  // the combined model's cameras
-async function artifactUrl(jobId, name) {  // a URL an <img> can load for a job's artifact, or null
-  const a = (await api("GET", `/jobs/${jobId}/artifacts`)).find((x) => x.name === name);
+async function artifactUrl(jobId, name, list = null) {  // a URL an <img> can load for a job's artifact, or null
+  const a = (list || await api("GET", `/jobs/${jobId}/artifacts`)).find((x) => x.name === name);
   if (!a) return null;
   return isApiUrl(a.download_url) ? authedUrl(a.download_url) : a.download_url;
 }
@@ -558,9 +558,10 @@ async function mapPage(jobId) {
   const job = await api("GET", `/jobs/${jobId}`);
   const project = await api("GET", `/projects/${job.project_id}`);
   jobNav(job, project);
-  const [gj, pos, aerialLayer, orthoDoc, orthoUrl] = await Promise.all([camerasOf(jobId), api("GET", `/projects/${job.project_id}/pos`),
-    layerOf(jobId, "sfm/cameras.geojson"), layerOf(jobId, "views/ortho/orthophoto.json"),
-    artifactUrl(jobId, "views/ortho/orthophoto.png").catch(() => null)]);
+  const arts = await api("GET", `/jobs/${jobId}/artifacts`);  // listed once for the page's layers
+  const [gj, pos, aerialLayer, orthoDoc, orthoUrl] = await Promise.all([layerOf(jobId, "combined/gis/cameras.geojson", arts),
+    api("GET", `/projects/${job.project_id}/pos`), layerOf(jobId, "sfm/cameras.geojson", arts),
+    layerOf(jobId, "views/ortho/orthophoto.json", arts), artifactUrl(jobId, "views/ortho/orthophoto.png", arts).catch(() => null)]);
   if (!gj) { main.replaceChildren(h("section", {}, h("p", {}, "no cameras layer yet: the job has not finished its combined SfM"))); return; }
   const posBy = Object.fromEntries(pos.map((r) => [r.image_name, r]));
   const pts = gj.features.map((f) => ({ p: f.properties, lon: f.geometry.coordinates[0], lat: f.geometry.coordinates[1] }));
