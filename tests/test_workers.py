@@ -549,7 +549,7 @@ def test_celery_worker_runs_a_job_through_the_broker(service, tiny_survey):
     assert job["status"] == "succeeded", (job, service.worker.text()[-3000:])
     assert [(st["stage"], st["status"]) for st in job["stages"]] == [("aerial_sfm", "succeeded")]
     assert job["stages"][0]["worker"].startswith("midview-test-")
-    assert job["metrics"]["aerial_sfm"]["NRI"].endswith("/10") and job["progress"] == 1.0
+    assert job["metrics"]["aerial_sfm"]["NRI"] == "20/20" and job["progress"] == 1.0
     assert ("running", "aerial_sfm") in {(st, stage) for st, stage, _ in seen}
     with service.app.state.sessionmaker() as s:
         assert s.get(Job, job_id).celery_root_id
