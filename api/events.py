@@ -29,6 +29,7 @@ def job_snapshot(job: Job) -> dict[str, Any]:
         "stage": job.current_stage,
         "progress": job.progress,
         "progress_percent": round(100.0 * job.progress, 1),
+        "message": job.progress_message,
         "attempt": job.attempt,
         "error": job.error,
         "timings": job.timings or {},

@@ -274,6 +274,7 @@ class JobOut(Out):
     current_stage: str | None
     progress: float = Field(description="0..1")
     progress_percent: float
+    progress_message: str | None = Field(None, description="What the running stage last reported")
     options: dict[str, Any]
     timings: dict[str, Any]
     metrics: dict[str, Any]

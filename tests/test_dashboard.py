@@ -232,6 +232,8 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
         d, lambda d: (t := _by(d, "#job-log").text) and "end: succeeded" in t and t, 30, "the end event"
     )
     assert "train_splat" in log and "end: succeeded" in log
+    # the stages' progress reports, as the events carry them: a stage, its percentage, its message
+    assert re.search(r"^\S+ +(train_splat|render_views|match_views) +\d{1,3}% \S", log, re.M), log
     assert "ground" in _by(d, "#job-outcome").text
     # the outcome first: N of M ground images registered, why the others were left out, and an amber
     # "finished with warnings" where images stayed out
@@ -370,12 +372,13 @@ def test_sign_in_upload_run_and_inspect_a_survey(server, browser, survey, shots)
     _by(d, "#signin button").click()
     _wait(d, lambda d: _all(d, "#stages tr.stage-row"), 30, "the shared job's page")
     assert d.current_url == job_url
-    # reopened, a finished job shows its history as the server keeps it: every stage run, in order
-    log = _by(d, "#job-log").text
-    assert "started aerial_sfm (attempt 1" in log and "succeeded combined_sfm (" in log, log
-    assert (
-        log.index("started aerial_sfm") < log.index("succeeded aerial_sfm") < log.index("started train_splat")
+    # reopened, a finished job shows its log as the server keeps it: every stage run, in order, with what
+    # the stage reported while it ran
+    log = _wait(d, lambda d: (t := _by(d, "#job-log").text) and "== combined_sfm" in t and t, 30, "the log")
+    assert "== aerial_sfm (attempt 1, succeeded" in log and "== combined_sfm (attempt 1, succeeded" in log, (
+        log
     )
+    assert log.index("== aerial_sfm") < log.index(" aerial_sfm 100%") < log.index("== train_splat")
 
     # a phone: 390 px wide, nothing wider than the screen
     d.set_window_size(390, 844)

@@ -41,7 +41,7 @@ from shared.db.session import (
 )
 
 REPO = Path(__file__).resolve().parents[1]
-HEAD = "0007"
+HEAD = "0008"
 TABLES = {
     "tenants",
     "api_keys",
@@ -317,6 +317,31 @@ def test_job_lifecycle(session: Session) -> None:
     again = crud.get_job(session, job.id)
     assert again.created_at.tzinfo is not None and again.options["views"] == 8
     assert session.get(StageRun, run.id).started_at.utcoffset().total_seconds() == 0
+
+
+def test_stage_logs_are_appended_and_read_apart_from_the_status(session: Session) -> None:
+    """Each stage run keeps the lines appended to it (in one statement each: fan-out units append from
+    several processes); the status read leaves them out; a rerun clears the progress message."""
+    job = crud.create_job(session, _project(session).id, options={})
+    first = crud.start_stage(session, job, "aerial_sfm")
+    crud.update_job_progress(session, job, 0.1, "aerial_sfm", "registering 12/20" + "x" * 900)
+    assert job.progress_message.startswith("registering 12/20") and len(job.progress_message) == 500
+    crud.append_stage_log(session, first.id, "10:00:00 aerial_sfm   0%\n")
+    crud.append_stage_log(session, first.id, "10:00:05 INFO midview.sfm: 20 of 20 registered\n")
+    crud.finish_stage(session, first)
+    crud.start_stage(session, job, "train_splat")
+    session.commit()
+    session.expire_all()
+    logs = crud.stage_logs(session, job.id)
+    assert [(r.stage, text) for r, text in logs] == [
+        ("aerial_sfm", "10:00:00 aerial_sfm   0%\n10:00:05 INFO midview.sfm: 20 of 20 registered\n"),
+        ("train_splat", ""),
+    ]
+    _, row, runs = crud.job_status_rows(session, job.id)
+    assert row.progress_message.startswith("registering") and all("log" not in r._fields for r in runs)
+    crud.set_job_status(session, job, JobStatus.failed, error="x")
+    crud.rerun_job(session, job)
+    assert job.progress_message is None
 
 
 @pytest.mark.parametrize(

@@ -449,6 +449,12 @@ def test_embedded_dispatcher_runs_a_job(tiny_survey, tmp_path):
         assert job["metrics"]["aerial_sfm"]["NRI"].endswith("/20")
         names = {a["name"] for a in client.get(f"/jobs/{job['id']}/artifacts", headers=headers).json()}
         assert {"sfm/report.json", "sfm/sparse/images.bin", "cameras.json"} <= names
+        # the server kept the stage's log: its progress reports, in order, under the run's heading
+        text = client.get(f"/jobs/{job['id']}/log", headers=headers).text
+        assert text.startswith("== aerial_sfm (attempt 1, succeeded, "), text[:300]
+        reports = [line.split() for line in text.splitlines()[1:]]
+        percents = [int(w[2].rstrip("%")) for w in reports if len(w) > 2 and w[1] == "aerial_sfm"]
+        assert percents[0] == 0 and percents[-1] == 100 and percents == sorted(percents), text[:2000]
         # rerun: the stage is up to date (same inputs, same times): skipped
         r = client.post(f"/jobs/{job['id']}/rerun", headers=headers)
         job = wait_for_job(client, headers, job["id"], 60)
@@ -561,6 +567,12 @@ def test_celery_worker_runs_a_job_through_the_broker(service, tiny_survey):
     # every running task unregistered itself; nothing of the job left in the queues
     assert not any(k for k in rd.scan_iter("midview:task:*:alive") if job_id.encode() in (rd.get(k) or b""))
     assert job_id not in RedisLiveness(rd).snapshot()
+    # the worker process's log of the stage, kept by the server: the pipeline's own records too
+    text = c.get(f"/jobs/{job_id}/log", headers=h).text
+    assert text.startswith("== aerial_sfm (attempt 1, succeeded, ") and " INFO midview.sfm" in text, text[
+        :2000
+    ]
+    assert c.get("/jobs/nope/log", headers=h).status_code == 404
 
 
 def test_celery_failure_fails_the_job_and_queues_the_webhook(service, tiny_survey):

@@ -29,7 +29,7 @@ import random
 import socket
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,8 +46,10 @@ from shared.db.session import get_engine, session_scope
 from shared.outcome import job_outcome
 from shared.storage import Storage, StorageKeyError, get_storage
 from workers import jobsync
+from workers.stagelog import StageLog, captured
 
 if TYPE_CHECKING:
+    from services.pipeline import FanOut
     from services.pipeline import Job as PipelineJob
 
 log = logging.getLogger("midview.workers")
@@ -182,6 +184,7 @@ class JobInfo:
     prefix: str  # the job's storage prefix (tenants/T/projects/P/jobs/J/)
     stages: list[str]
     run_id: str | None = None
+    log_run_id: str | None = None  # the stage run a fan-out unit's log goes to (its stage's running run)
     forced: bool = False  # run the stage even where it is up to date (a forced rerun)
 
 
@@ -271,7 +274,26 @@ def _begin(
         info.forced = _forced(s, row, stage)
         if open_run:
             info.run_id = _open_run(s, row, stage, worker or worker_name(), node).id
+        else:
+            info.log_run_id = s.scalar(
+                sa.select(StageRun.id)
+                .where(
+                    StageRun.job_id == job_id, StageRun.stage == stage, StageRun.status == StageStatus.running
+                )
+                .order_by(StageRun.started_at.desc())
+                .limit(1)
+            )
     return info
+
+
+def _keep_log(ctx: Context, run_id: str | None) -> Callable[[StageLog], None]:
+    """Writes what a stage log collected to the run's log, in a session of its own."""
+
+    def flush(stage_log: StageLog) -> None:
+        with ctx.session() as s:
+            stage_log.write(s, run_id)
+
+    return flush
 
 
 def _close_run(ctx: Context, run_id: str | None, status: StageStatus, error: str | None = None) -> None:
@@ -293,8 +315,11 @@ class ProgressReporter:
     job's overall progress = (index of stage + fraction) / number of stages; at most one write per
     min_interval_s (besides a stage's first and last report). JobStopped when the job was cancelled."""
 
-    def __init__(self, ctx: Context, info: JobInfo, min_interval_s: float = 1.0):
+    def __init__(
+        self, ctx: Context, info: JobInfo, min_interval_s: float = 1.0, stage_log: StageLog | None = None
+    ):
         self.ctx, self.info, self.min_interval_s = ctx, info, min_interval_s
+        self.stage_log = stage_log  # what the stage logged goes to its run with each write
         self._last = -math.inf
         self._last_stage: str | None = None
 
@@ -309,10 +334,15 @@ class ProgressReporter:
         if not first and fraction < 1.0 and now - self._last < self.min_interval_s:
             return
         self._last, self._last_stage = now, stage
-        log.info("job %s: %s %3.0f%% %s", self.info.id, stage, 100 * fraction, message)
+        line = f"{stage} {100 * fraction:3.0f}% {message}".rstrip()
+        log.info("job %s: %s", self.info.id, line, extra={"progress_report": True})
+        if self.stage_log is not None:
+            self.stage_log.add(line, stamp=True)
         try:
             with self.ctx.session() as s:
-                crud.update_job_progress(s, self.info.id, self.overall(stage, fraction), stage)
+                crud.update_job_progress(s, self.info.id, self.overall(stage, fraction), stage, message)
+                if self.stage_log is not None:
+                    self.stage_log.write(s, self.info.log_run_id or self.info.run_id)
                 if self.info.run_id is not None:  # a progress report is a heartbeat too
                     s.execute(
                         sa.update(StageRun)
@@ -406,15 +436,21 @@ def execute_stage(
 ) -> dict:
     """Run one stage of a job (skipped when up to date); returns {stage, skipped, seconds, summary}.
     node: the Celery node name, recorded on the stage run for the reconciler's liveness check."""
-    from services import pipeline
 
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; stages are {list(STAGES)}")
     ctx = get_context(settings)
     info = _begin(ctx, job_id, stage, worker, node=node)
+    with captured(_keep_log(ctx, info.run_id)) as stage_log:
+        return _execute_stage(ctx, info, job_id, stage, stage_log)
+
+
+def _execute_stage(ctx: Context, info: JobInfo, job_id: str, stage: str, stage_log: StageLog) -> dict:
+    from services import pipeline
+
     try:
         job = _materialize(ctx, info)
-        report = ProgressReporter(ctx, info)
+        report = ProgressReporter(ctx, info, stage_log=stage_log)
         # after the fan-out, match_views finds every view up to date and only writes its marker
         marker = pipeline.run_stage(job, stage, progress=report, force=info.forced)
         _push_stage(ctx, info, job, stage)
@@ -467,9 +503,18 @@ def prepare_fan_out(
         raise ValueError(f"stage {stage} is not a fan-out stage")
     ctx = get_context(settings)
     info = _begin(ctx, job_id, stage, worker, node=node)
+    with captured(_keep_log(ctx, info.run_id)) as stage_log:
+        return _prepare_fan_out(ctx, info, stage, fan, stage_log)
+
+
+def _prepare_fan_out(
+    ctx: Context, info: JobInfo, stage: str, fan: FanOut, stage_log: StageLog
+) -> tuple[list[str], str]:
+    from services import pipeline
+
     try:
         job = _materialize(ctx, info)
-        report = ProgressReporter(ctx, info)
+        report = ProgressReporter(ctx, info, stage_log=stage_log)
         if not info.forced and pipeline.is_done(job, stage):  # nothing to fan out: the stage task skips it
             report(stage, 0.0, "up to date")
             return [], fan.queue(job)
@@ -500,11 +545,18 @@ def execute_unit(
         raise ValueError(f"stage {stage} is not a fan-out stage")
     ctx = get_context(settings)
     info = _begin(ctx, job_id, stage, worker, open_run=False)
+    with captured(_keep_log(ctx, info.log_run_id)) as stage_log:
+        return _execute_unit(ctx, info, stage, unit, fan, stage_log)
+
+
+def _execute_unit(
+    ctx: Context, info: JobInfo, stage: str, unit: str, fan: FanOut, stage_log: StageLog
+) -> dict:
     job = _materialize(ctx, info)
     if not fan.ready(job):  # the preparation is missing here: do it
         fan.prepare(job)
     names = fan.units(job)
-    reporter = ProgressReporter(ctx, info)
+    reporter = ProgressReporter(ctx, info, stage_log=stage_log)
 
     def done() -> int:
         folder = fan.marker(unit).split("/", 1)[0] + "/"

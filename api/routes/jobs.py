@@ -7,7 +7,7 @@ import logging
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
-from fastapi.responses import StreamingResponse
+from fastapi.responses import PlainTextResponse, StreamingResponse
 from sqlalchemy.orm import Session, sessionmaker
 
 from api.deps import (
@@ -55,6 +55,7 @@ def job_fields(job: Any) -> dict[str, Any]:
         current_stage=job.current_stage,
         progress=job.progress,
         progress_percent=round(100.0 * job.progress, 1),
+        progress_message=getattr(job, "progress_message", None),
         options=job.options or {},
         timings=job.timings or {},
         metrics=metrics,
@@ -326,6 +327,23 @@ def job_event_stream(
     )
     headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
     return StreamingResponse(stream, media_type="text/event-stream", headers=headers)
+
+
+@router.get(
+    "/jobs/{job_id}/log",
+    response_class=PlainTextResponse,
+    responses={200: {"content": {"text/plain": {}}, "description": "The job's log, stage run by stage run"}},
+)
+def job_log(job: JobDep, session: SessionDep) -> PlainTextResponse:
+    """The job's log as its workers kept it: for each stage run (every attempt, in start order) a heading
+    line, then what the stage logged while it ran (its progress and its steps' messages)."""
+    parts = []
+    for run, text in crud.stage_logs(session, job.id):
+        took = f", {run.duration_s:.1f} s" if run.duration_s is not None else ""
+        head = f"== {run.stage} (attempt {run.attempt}, {run.status.value}{took}"
+        head += f", {run.worker})" if run.worker else ")"
+        parts.append(head + "\n" + text + (f"error: {run.error}\n" if run.error else ""))
+    return PlainTextResponse("".join(parts), headers={"Cache-Control": "no-cache"})
 
 
 @router.post(

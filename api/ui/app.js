@@ -503,15 +503,22 @@ async function jobPage(jobId) {
     h("section", {}, h("h2", {}, "Log"), log),
     h("section", {}, h("h2", {}, "Results"), bundles, h("table", {}, arts)));
   await render();
-  // the job's history as the server keeps it (its stage runs, every attempt), then what follows live
-  const history = job.stages.flatMap((r) => [[r.started_at, `started ${r.stage} (attempt ${r.attempt}${r.worker ? ", " + r.worker : ""})`],
-    ...(r.finished_at ? [[r.finished_at, `${r.status} ${r.stage} (${fmtS(r.duration_s)})${r.error ? ": " + r.error.slice(0, 200) : ""}`]] : [])]);
-  history.sort((a, b) => new Date(a[0]) - new Date(b[0]));
-  for (const [t, text] of history) log.append(`${new Date(t).toLocaleTimeString()}  ${text}\n`);
-  let lastStage = job.current_stage;
+  // the job's log as the server keeps it (every stage run, every attempt: what each stage logged while
+  // it ran, GET /jobs/{id}/log), then what its progress reports say live
+  if (SNAP) {  // a static report has the stage runs only
+    const history = job.stages.flatMap((r) => [[r.started_at, `started ${r.stage} (attempt ${r.attempt}${r.worker ? ", " + r.worker : ""})`],
+      ...(r.finished_at ? [[r.finished_at, `${r.status} ${r.stage} (${fmtS(r.duration_s)})${r.error ? ": " + r.error.slice(0, 200) : ""}`]] : [])]);
+    history.sort((a, b) => new Date(a[0]) - new Date(b[0]));
+    for (const [t, text] of history) log.append(`${new Date(t).toLocaleTimeString()}  ${text}\n`);
+  } else {
+    try { log.append(await (await api("GET", `/jobs/${jobId}/log`, undefined, true)).text()); log.scrollTop = log.scrollHeight; } catch (x) { log.append(`the job's log could not be read: ${x.message}\n`); }
+  }
+  let lastStage = job.current_stage, lastMessage = job.progress_message;
   follow(jobId, async (ev, data) => {
     if (ev === "progress") {
       if (data.stage !== lastStage || data.status !== job.status) logLine(`${data.status} ${data.stage || ""}`);
+      if (data.message && data.message !== lastMessage) logLine(`${data.stage || ""} ${data.progress_percent.toFixed(0)}% ${data.message}`);
+      lastMessage = data.message;
       const refetch = data.stage !== lastStage || data.status !== job.status;
       lastStage = data.stage;
       job = { ...job, status: data.status, current_stage: data.stage, progress_percent: data.progress_percent,

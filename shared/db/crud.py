@@ -14,7 +14,7 @@ from typing import Any, TypeVar
 
 import sqlalchemy as sa
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session, joinedload, selectinload
+from sqlalchemy.orm import Session, joinedload, selectinload, undefer
 
 from shared.config import get_settings
 from shared.db.models import (
@@ -41,6 +41,7 @@ API_KEY_PREFIX = "mv_"
 API_KEY_SHOWN = 11  # characters kept in clear as ApiKey.prefix ("mv_" + 8)
 SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
 T = TypeVar("T")
+MAX_PROGRESS_MESSAGE = 500  # characters of a stage's progress message kept (jobs.progress_message)
 
 # allowed job status changes; the same status again is a no-op; leaving a final status needs rerun_job
 JOB_TRANSITIONS: dict[JobStatus, frozenset[JobStatus]] = {
@@ -515,8 +516,9 @@ def job_status_rows(session: Session, job_id: str) -> tuple[str, sa.Row, list[sa
     job = session.execute(stmt).first()
     if job is None:
         return None
+    columns = [c for c in runs.c if c.name != "log"]  # the logs are read apart (stage_logs)
     stage_rows = session.execute(
-        sa.select(*runs.c).where(runs.c.job_id == job.id).order_by(runs.c.started_at)
+        sa.select(*columns).where(runs.c.job_id == job.id).order_by(runs.c.started_at)
     ).all()
     return job.tenant_id, job, list(stage_rows)
 
@@ -568,9 +570,12 @@ def set_job_status(
     return job
 
 
-def update_job_progress(session: Session, job: Job | str, progress: float, stage: str | None = None) -> Job:
-    """Report progress in [0, 1] (and the current stage) of a live job; a queued job becomes running.
-    InvalidTransitionError if the job has finished (e.g. was cancelled): the worker should stop."""
+def update_job_progress(
+    session: Session, job: Job | str, progress: float, stage: str | None = None, message: str | None = None
+) -> Job:
+    """Report progress in [0, 1] (and the current stage, and what it is doing) of a live job; a queued job
+    becomes running. InvalidTransitionError if the job has finished (e.g. was cancelled): the worker
+    should stop."""
     job = _job(session, job)
     if not 0.0 <= float(progress) <= 1.0:
         raise ValueError(f"progress {progress} outside [0, 1]")
@@ -581,6 +586,8 @@ def update_job_progress(session: Session, job: Job | str, progress: float, stage
     job.progress = float(progress)
     if stage is not None:
         job.current_stage = stage
+    if message is not None:
+        job.progress_message = message[:MAX_PROGRESS_MESSAGE]
     session.flush()
     return job
 
@@ -607,7 +614,7 @@ def rerun_job(session: Session, job: Job | str, force_from: str | None = None) -
     job.status = JobStatus.queued
     job.attempt += 1
     job.progress = 0.0
-    job.current_stage = None
+    job.current_stage = job.progress_message = None
     job.error = None
     job.started_at = job.finished_at = None
     job.celery_root_id = None
@@ -688,6 +695,28 @@ def finish_stage(
     job.timings = {**(job.timings or {}), run.stage: run.duration_s}
     session.flush()
     return run
+
+
+def append_stage_log(session: Session, run_id: str, text: str) -> None:
+    """Append lines to a stage run's log in one statement (the units of a fan-out stage append to the
+    same run from several processes; no read-modify-write)."""
+    session.execute(
+        sa.update(StageRun)
+        .where(StageRun.id == run_id)
+        .values(log=sa.func.coalesce(StageRun.log, "") + text)
+        .execution_options(synchronize_session=False)
+    )
+
+
+def stage_logs(session: Session, job_id: str) -> list[tuple[StageRun, str]]:
+    """(stage run, its log) of a job's stage runs in start order, the runs without a log too."""
+    runs = session.scalars(
+        sa.select(StageRun)
+        .where(StageRun.job_id == str(job_id))
+        .order_by(StageRun.started_at)
+        .options(undefer(StageRun.log))
+    ).all()
+    return [(r, r.log or "") for r in runs]
 
 
 def record_artifact(

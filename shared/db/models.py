@@ -278,6 +278,7 @@ class Job(Base):
     )
     current_stage: Mapped[str | None] = mapped_column(sa.String(64))
     progress: Mapped[float] = mapped_column(default=0.0)
+    progress_message: Mapped[str | None] = mapped_column(sa.String(500))  # the running stage's last report
     options: Mapped[dict[str, Any]] = mapped_column(default=dict)
     timings: Mapped[dict[str, Any]] = mapped_column(default=dict)
     metrics: Mapped[dict[str, Any]] = mapped_column(default=dict)
@@ -324,6 +325,9 @@ class StageRun(Base):
     duration_s: Mapped[float | None]
     error: Mapped[str | None] = mapped_column(sa.Text)
     output_key: Mapped[str | None] = mapped_column(sa.String(1024))
+    log: Mapped[str | None] = mapped_column(
+        sa.Text, deferred=True
+    )  # lines the stage logged (workers/stagelog.py)
 
     job: Mapped[Job] = relationship(back_populates="stage_runs")
 
