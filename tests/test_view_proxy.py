@@ -213,3 +213,41 @@ def test_walls_under_the_roofs_outline_where_the_facades_hold_no_points():
 
         assert within_1pct({}) < 0.05  # no wall: the ground behind, or nothing
         assert within_1pct({"roof_walls": True}) > 0.85, centre
+
+
+def test_facades_without_sparse_points_get_planes_from_the_dense_points_given_beside():
+    """The sparse model holds the ground and the roof only; the dense stereo points hold the walls: the
+    proxy built from both finds the walls and gives the box's depth at a low oblique view."""
+    import pycolmap
+
+    rng = np.random.default_rng(4)
+    P, face = _box_scene(rng)
+    rec = pycolmap.Reconstruction()
+    for x in P[face <= 1]:
+        rec.add_point3D(x, pycolmap.Track(), np.zeros(3, np.uint8))
+    conf = {"inlier_m": 0.12, "min_track_length": 0}
+    cam = Camera("PINHOLE", 320, 240, [260.0, 260.0, 160.0, 120.0])
+    pose = look_at(np.array([-14.0, -18.0, 2.0]), np.array([0.0, 0.0, 3.0]))  # from the street
+    truth = _box_depth(cam, pose)
+    sparse_only = PlaneProxy.from_model(rec, conf)
+    assert not any(abs(p.n[2]) < 0.1 for p in sparse_only.planes)
+    dense = P[face >= 2][::3]  # coarser than the sparse points, as a voxel grid of the surface is
+    both = PlaneProxy.from_model(rec, conf, dense=dense)
+    assert sum(abs(p.n[2]) < 0.1 for p in both.planes) >= 2  # the two walls this view sees, at least
+    depth = both.depth(cam, pose)
+    rel = np.abs(depth - truth) / np.maximum(truth, 1e-6)
+    hit_box = truth < _ground_only(cam, pose) - 0.5  # the pixels where the box stands in front
+    assert hit_box.sum() > 2000
+    assert (rel[hit_box] < 0.01).mean() > 0.9, np.quantile(rel[hit_box], [0.5, 0.9])
+    assert (sparse_only.depth(cam, pose)[hit_box] > 0).mean() < 0.5  # without them: the box's sides missing
+
+
+def _ground_only(camera: Camera, pose) -> np.ndarray:
+    """The z-depth of the ground plane alone (inf where the ray does not come down)."""
+    K = camera.K
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+    rays = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], np.ones(u.shape)], -1)
+    d = rays.reshape(-1, 3) @ pose.R
+    with np.errstate(divide="ignore"):
+        t = np.where(d[:, 2] < 0, -pose.center[2] / d[:, 2], np.inf)
+    return t.reshape(camera.height, camera.width)

@@ -148,3 +148,9 @@ def test_the_surface_gives_the_true_depth_at_a_new_view(survey):
     assert np.median(rel[seen & (depth > 0)]) < 0.01
     top = seen & (X[..., 2] > 2.5)
     assert top.sum() > 1000 and np.median(rel[top & (depth > 0)]) < 0.01  # the platform, 5 m up
+    # its points for the plane proxy: one per voxel, on the surface (the ground or the platform)
+    pts = surface.points(0.5)
+    assert 0 < len(pts) < len(surface.mesh.vertex.positions)
+    assert len(np.unique(np.floor(pts / 0.5), axis=0)) == len(pts)
+    on = (np.abs(pts[:, 2]) < 0.3) | (np.abs(pts[:, 2] - 5.0) < 0.3)
+    assert on.mean() > 0.8, np.quantile(pts[:, 2], [0.1, 0.5, 0.9])

@@ -81,6 +81,11 @@ confs: dict[str, dict[str, Any]] = {
         "terrain_radius_m": 10.0,
         "terrain_quantile": 0.1,
         "terrain_min_points": 10,
+        # the planes found among the sparse points and points of the aerial images' dense stereo surface
+        # (services.views.stereo, one per dense_voxel_m voxel): facades the sparse model hardly holds get
+        # a plane of their own ("none": the sparse points alone). The renderer builds the surface.
+        "dense_points": "none",
+        "dense_voxel_m": 0.5,
     },
 }
 
@@ -170,7 +175,7 @@ def _refine(P: np.ndarray, live: np.ndarray, plane: np.ndarray, tol: float) -> t
         if len(inl) < 3:
             break
         c = P[inl].mean(0)
-        n = np.linalg.svd(P[inl] - c)[2][2]
+        n = np.linalg.svd(P[inl] - c, full_matrices=False)[2][2]  # not the (N, N) U
         plane = np.array([*n, -n @ c])
         inl = live[np.abs(Q @ n + plane[3]) < tol]
     return plane, inl
@@ -479,17 +484,28 @@ class PlaneProxy:
         return cls(planes, c)
 
     @classmethod
-    def from_model(cls, model: str | Path | pycolmap.Reconstruction, conf: dict | None = None) -> PlaneProxy:
+    def from_model(
+        cls,
+        model: str | Path | pycolmap.Reconstruction,
+        conf: dict | None = None,
+        dense: np.ndarray | None = None,
+    ) -> PlaneProxy:
         """The planes of a COLMAP model's (a folder or a loaded Reconstruction) points seen by at least
-        min_track_length images."""
+        min_track_length images, and of the `dense` points (N, 3) given beside them."""
         c = {**confs["default"], **(conf or {})}
         rec = model if isinstance(model, pycolmap.Reconstruction) else pycolmap.Reconstruction(str(model))
         P = np.array(
             [p.xyz for p in rec.points3D.values() if p.track.length() >= int(c["min_track_length"])], float
         ).reshape(-1, 3)
+        n_sparse = len(P)
+        if dense is not None and len(dense):
+            P = np.concatenate([P, np.asarray(dense, float).reshape(-1, 3)])
         proxy = cls.from_points(P, c) if len(P) >= int(c["min_inliers"]) else cls([], c)
         covered = sum(p.num_points for p in proxy.planes)
-        logger.info("plane proxy: %d planes hold %d of %d sparse points", len(proxy.planes), covered, len(P))
+        logger.info(
+            "plane proxy: %d planes hold %d of %d sparse and %d dense points",
+            len(proxy.planes), covered, n_sparse, len(P) - n_sparse,
+        )  # fmt: skip
         return proxy
 
     def _cast(self, pl: Plane, camera: Camera, pose: Pose, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

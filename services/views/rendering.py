@@ -131,20 +131,27 @@ class SourceRenderer:
         c = {**confs["default"], **(conf or {})}
         rec = pycolmap.Reconstruction(str(sparse_dir))  # read once for the planes and the sources
         self.base = base
-        self.proxy = PlaneProxy.from_model(rec, c["proxy"])
-        self.sources = SourceImages(rec, image_dir, c["source"])
+
+        def stereo() -> StereoSurface:
+            if stereo_cache is not None:
+                return StereoSurface.cached(sparse_dir, image_dir, c["stereo"], stereo_cache)
+            return StereoSurface.build(rec, image_dir, c["stereo"])
+
         self.stereo = self.truth = None
+        if c["depth"] == "stereo":
+            self.stereo = stereo()
+        dense = None
+        if c["proxy"].get("dense_points") == "stereo":
+            dense = (self.stereo or stereo()).points(float(c["proxy"]["dense_voxel_m"]))
+        elif c["proxy"].get("dense_points", "none") != "none":
+            raise ValueError(f"unknown dense points {c['proxy']['dense_points']!r} of the proxy (stereo)")
+        self.proxy = PlaneProxy.from_model(rec, c["proxy"], dense)
+        self.sources = SourceImages(rec, image_dir, c["source"])
         if c["depth"] == "truth":
             if scene is None:
                 raise ValueError("the views' depth 'truth' needs a synthetic scene (settings.scene)")
             self.truth = GroundTruthRenderer(scene, sparse_dir)
-        elif c["depth"] == "stereo":
-            self.stereo = (
-                StereoSurface.cached(sparse_dir, image_dir, c["stereo"], stereo_cache)
-                if stereo_cache is not None
-                else StereoSurface.build(rec, image_dir, c["stereo"])
-            )
-        elif c["depth"] not in ("proxy", "sweep"):
+        elif c["depth"] not in ("proxy", "sweep", "stereo"):
             raise ValueError(f"unknown views' depth {c['depth']!r} (proxy, sweep, stereo, truth)")
         self.sweep = PlaneSweep(self.sources, c["sweep"]) if c["depth"] == "sweep" else None
         self.colour = colour

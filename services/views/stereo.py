@@ -257,8 +257,7 @@ class StereoSurface:
 
         self.conf = conf
         self.mesh = mesh
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(mesh)
+        self._scene: o3d.t.geometry.RaycastingScene | None = None  # built at the first depth()
 
     @classmethod
     def build(
@@ -322,6 +321,22 @@ class StereoSurface:
         tmp.replace(path)
         return surface
 
+    def points(self, voxel_m: float) -> np.ndarray:
+        """The surface's vertices, one (their mean) per voxel of voxel_m metres: (N, 3)."""
+        V = self.mesh.vertex.positions.numpy()  # float32; the TSDF's buffer holds unused ones too
+        V = V[np.unique(self.mesh.triangle.indices.numpy().ravel())]
+        if not len(V):
+            return np.zeros((0, 3))
+        cells = np.floor(V / np.float32(voxel_m)).astype(np.int64)
+        cells -= cells.min(axis=0)
+        span = cells.max(axis=0) + 1
+        keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # one int64 per voxel
+        del cells
+        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        del keys
+        sums = [np.bincount(inverse, weights=V[:, k], minlength=len(counts)) for k in range(3)]
+        return np.stack(sums, 1) / counts[:, None]
+
     def depth(self, camera: Camera, pose: Pose) -> np.ndarray:
         """z-depth (H, W) of the surface at a camera, 0 where a ray hits nothing."""
         import open3d as o3d
@@ -333,6 +348,9 @@ class StereoSurface:
         d_world = np.c_[xy, np.ones(len(xy))] @ pose.R  # R^T d: rays of unit z-depth
         o = np.broadcast_to(pose.center, d_world.shape)
         rays = o3d.core.Tensor(np.c_[o, d_world].astype(np.float32))
+        if self._scene is None:
+            self._scene = o3d.t.geometry.RaycastingScene()
+            self._scene.add_triangles(self.mesh)
         t = self._scene.cast_rays(rays)["t_hit"].numpy()  # in units of the ray's direction: z-depth
         t[~np.isfinite(t)] = 0.0
         return t.reshape(H, W).astype(np.float32)
