@@ -386,7 +386,16 @@ async function follow(jobId, onEvent) {  // the job's server-sent events, read w
 function jobNav(job, project) {
   nav.replaceChildren(h("a", { href: "#/projects" }, "projects"), h("a", { href: `#/projects/${job.project_id}` }, project.name),
     h("a", { href: `#/jobs/${job.id}` }, `job ${job.id.slice(0, 8)}`), h("a", { href: `#/jobs/${job.id}/map`, id: "map-link" }, "map"),
-    h("a", { href: `#/jobs/${job.id}/3d`, id: "view3d-link" }, "3D"));
+    h("a", { href: `#/jobs/${job.id}/3d`, id: "view3d-link" }, "3D"),
+    // a synthetic survey's report: the methods against its ground truth, a tab of its own
+    SNAP && SNAP.evaluation ? h("a", { href: `#/jobs/${job.id}/evaluation`, id: "evaluation-link" }, "evaluation") : "");
+}
+async function evaluationPage(jobId) {  // a static report's evaluation against the survey's ground truth
+  const job = await api("GET", `/jobs/${jobId}`);
+  const project = await api("GET", `/projects/${job.project_id}`);
+  jobNav(job, project);
+  main.replaceChildren(h("h1", {}, `Job ${jobId.slice(0, 8)}: evaluation`),
+    SNAP && SNAP.evaluation ? evaluationSection(SNAP.evaluation) : h("p", { class: "muted" }, "a job of uploaded images has no ground truth to evaluate against"));
 }
 function stageRows(job) {
   const wanted = job.options.stages;  // the API's JobOptions: stage names from services.pipeline's registry
@@ -499,7 +508,8 @@ async function jobPage(jobId) {
     h("section", {}, h("div", { class: "row" }, status, result, pct, SNAP ? "" : [cancel, from, force, rerun]), h("p"), overall, outcome,
       h("table", {}, h("thead", {}, h("tr", {}, h("th", {}, "stage"), h("th", {}, "status"), h("th", {}, "progress"), h("th", { class: "num" }, "time"), h("th", {}, ""))), stages)),
     grid,
-    SNAP && SNAP.evaluation ? evaluationSection(SNAP.evaluation) : "",
+    SNAP && SNAP.evaluation ? h("p", { class: "muted" }, "A synthetic survey: the methods against its ground truth are under ",
+      h("a", { href: `#/jobs/${jobId}/evaluation`, id: "evaluation-tab-link" }, "evaluation"), ".") : "",
     h("section", {}, h("h2", {}, "Log"), log),
     h("section", {}, h("h2", {}, "Results"), bundles, h("table", {}, arts)));
   await render();
@@ -517,7 +527,7 @@ async function jobPage(jobId) {
   follow(jobId, async (ev, data) => {
     if (ev === "progress") {
       if (data.stage !== lastStage || data.status !== job.status) logLine(`${data.status} ${data.stage || ""}`);
-      if (data.message && data.message !== lastMessage) logLine(`${data.stage || ""} ${data.progress_percent.toFixed(0)}% ${data.message}`);
+      if (data.message && data.message !== lastMessage) logLine(`${data.stage || ""}: ${data.message}`);
       lastMessage = data.message;
       const refetch = data.stage !== lastStage || data.status !== job.status;
       lastStage = data.stage;
@@ -780,6 +790,7 @@ async function route() {
     if (parts[0] === "projects" && parts[1]) await projectPage(parts[1]);
     else if (parts[0] === "jobs" && parts[2] === "map") await mapPage(parts[1]);
     else if (parts[0] === "jobs" && parts[2] === "3d") await page3d(parts[1]);
+    else if (parts[0] === "jobs" && parts[2] === "evaluation") await evaluationPage(parts[1]);
     else if (parts[0] === "jobs" && parts[2] === "ground") await groundPage(parts[1], parts.slice(3).join("/"));
     else if (parts[0] === "jobs" && parts[1]) await jobPage(parts[1]);
     else { nav.replaceChildren(h("a", { href: "#/projects" }, "projects")); await projectsPage(); }
