@@ -154,3 +154,6 @@ def test_the_surface_gives_the_true_depth_at_a_new_view(survey):
     assert len(np.unique(np.floor(pts / 0.5), axis=0)) == len(pts)
     on = (np.abs(pts[:, 2]) < 0.3) | (np.abs(pts[:, 2] - 5.0) < 0.3)
     assert on.mean() > 0.8, np.quantile(pts[:, 2], [0.1, 0.5, 0.9])
+    # the walls' only: the flat ground and platform top (nearly all of this scene) are left out
+    walls = surface.points(0.5, max_tilt_deg=20.0)
+    assert len(walls) < 0.2 * len(pts)

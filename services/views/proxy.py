@@ -86,6 +86,7 @@ confs: dict[str, dict[str, Any]] = {
         # a plane of their own ("none": the sparse points alone). The renderer builds the surface.
         "dense_points": "none",
         "dense_voxel_m": 0.5,
+        "dense_max_tilt_deg": -1.0,  # >= 0: only the dense points of walls (normal this near horizontal)
     },
 }
 

@@ -142,7 +142,10 @@ class SourceRenderer:
             self.stereo = stereo()
         dense = None
         if c["proxy"].get("dense_points") == "stereo":
-            dense = (self.stereo or stereo()).points(float(c["proxy"]["dense_voxel_m"]))
+            tilt = float(c["proxy"]["dense_max_tilt_deg"])
+            dense = (self.stereo or stereo()).points(
+                float(c["proxy"]["dense_voxel_m"]), tilt if tilt >= 0 else None
+            )
         elif c["proxy"].get("dense_points", "none") != "none":
             raise ValueError(f"unknown dense points {c['proxy']['dense_points']!r} of the proxy (stereo)")
         self.proxy = PlaneProxy.from_model(rec, c["proxy"], dense)

@@ -321,10 +321,16 @@ class StereoSurface:
         tmp.replace(path)
         return surface
 
-    def points(self, voxel_m: float) -> np.ndarray:
-        """The surface's vertices, one (their mean) per voxel of voxel_m metres: (N, 3)."""
-        V = self.mesh.vertex.positions.numpy()  # float32; the TSDF's buffer holds unused ones too
-        V = V[np.unique(self.mesh.triangle.indices.numpy().ravel())]
+    def points(self, voxel_m: float, max_tilt_deg: float | None = None) -> np.ndarray:
+        """The surface's vertices, one (their mean) per voxel of voxel_m metres: (N, 3); with max_tilt_deg
+        only those of walls (a vertex normal within max_tilt_deg of horizontal; z is up)."""
+        used = np.unique(self.mesh.triangle.indices.numpy().ravel())
+        V = self.mesh.vertex.positions.numpy()[used]  # float32; the TSDF's buffer holds unused ones too
+        if max_tilt_deg is not None:
+            if "normals" not in self.mesh.vertex:
+                self.mesh.compute_vertex_normals()
+            nz = self.mesh.vertex.normals.numpy()[used, 2]
+            V = V[np.abs(nz) < np.sin(np.radians(float(max_tilt_deg)))]
         if not len(V):
             return np.zeros((0, 3))
         cells = np.floor(V / np.float32(voxel_m)).astype(np.int64)
