@@ -5,7 +5,11 @@ the pages make (measured in the same run with httpx).
 The job is made behind the API (a succeeded job with its stage runs and a cameras.geojson of N cameras in
 the database and the storage of the served data folder): what is timed is the page, not a pipeline.
 
-    python bench/dashboard.py [--images 200] [--runs 5] [--json docs/results/dashboard.json]
+    python bench/dashboard.py [--images 200] [--runs 5] [--report runs/demo/report.html]
+                              [--json docs/results/dashboard.json]
+
+With --report, the static report a demo wrote is timed too (its job page and its map, opened from the
+file).
 """
 
 from __future__ import annotations
@@ -103,8 +107,8 @@ def make_job(data_dir: Path, n: int) -> str:
     return job_id
 
 
-def page_times(base: str, job_id: str, runs: int) -> dict[str, list[float]]:
-    """Seconds from navigation to the page showing what it should, per page and run."""
+def _chromium():
+    """A headless Chromium (selenium) with the browser's console kept."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -116,36 +120,71 @@ def page_times(base: str, job_id: str, runs: int) -> dict[str, list[float]]:
         "--headless=new",
         "--no-sandbox",
         "--disable-dev-shm-usage",
+        "--allow-file-access-from-files",
         "--window-size=1280,800",
         *quiet,
     ):
         opts.add_argument(arg)
-    d = webdriver.Chrome(options=opts, service=Service(shutil.which("chromedriver")))
+    return webdriver.Chrome(options=opts, service=Service(shutil.which("chromedriver")))
+
+
+def _time_pages(d, pages: dict[str, tuple[str, str]], runs: int) -> dict[str, list[float]]:
+    """Seconds from navigation to each page (url, script true once it shows what it should), per run;
+    the first round warms the browser's cache and is left out."""
+    out: dict[str, list[float]] = {k: [] for k in pages}
+    for _ in range(runs + 1):
+        for name, (url, ready) in pages.items():
+            d.get("about:blank")
+            t0 = time.perf_counter()
+            d.get(url)
+            while not d.execute_script(ready):
+                time.sleep(0.005)
+                if time.perf_counter() - t0 > 30:
+                    logs = [e["message"] for e in d.get_log("browser")][-5:]
+                    raise RuntimeError(f"{name}: not shown after 30 s; the browser's console: {logs}")
+            out[name].append(time.perf_counter() - t0)
+    return {k: v[1:] for k, v in out.items()}
+
+
+JOB_SHOWN = "return document.querySelectorAll('#stages tr.stage-row').length >= 7"
+MAP_SHOWN = (  # the map drawn: its camera markers (Leaflet) and the table
+    "return document.querySelectorAll('#map path.cam').length > 0"
+    " && document.querySelectorAll('#ground-images tr.ground-row').length > 0"
+)
+
+
+def page_times(base: str, job_id: str, runs: int) -> dict[str, list[float]]:
+    """Seconds from navigation to the page showing what it should, per page and run."""
     pages = {
-        "job": (f"#/jobs/{job_id}", "return document.querySelectorAll('#stages tr.stage-row').length >= 7"),
-        "map": (f"#/jobs/{job_id}/map",  # the map drawn: its camera markers (Leaflet) and the table
-                "return document.querySelectorAll('#map path.cam').length > 0"
-                " && document.querySelectorAll('#ground-images tr.ground-row').length > 0"),
-        "ground": (f"#/jobs/{job_id}/ground/G0000.jpg",
+        "job": (f"{base}/ui/#/jobs/{job_id}", JOB_SHOWN),
+        "map": (f"{base}/ui/#/jobs/{job_id}/map", MAP_SHOWN),
+        "ground": (f"{base}/ui/#/jobs/{job_id}/ground/G0000.jpg",
                    "const i = document.getElementById('ground-photo');"
                    "return !!(i && i.naturalWidth)"),
     }  # fmt: skip
-    out: dict[str, list[float]] = {k: [] for k in pages}
+    d = _chromium()
     try:
         d.get(f"{base}/ui/")
         d.execute_script(f"sessionStorage.setItem('midview-key', '{KEY}')")
-        for _ in range(runs + 1):  # the first round warms the browser's cache of the page's files
-            for name, (route, ready) in pages.items():
-                d.get("about:blank")
-                t0 = time.perf_counter()
-                d.get(f"{base}/ui/{route}")
-                while not d.execute_script(ready):
-                    time.sleep(0.005)
-                    if time.perf_counter() - t0 > 30:
-                        logs = [e["message"] for e in d.get_log("browser")][-5:]
-                        raise RuntimeError(f"{name}: not shown after 30 s; the browser's console: {logs}")
-                out[name].append(time.perf_counter() - t0)
-        return {k: v[1:] for k, v in out.items()}
+        return _time_pages(d, pages, runs)
+    finally:
+        d.quit()
+
+
+def report_times(report: Path, runs: int) -> dict[str, list[float]]:
+    """Seconds from opening a static report (`midview demo`'s report.html: one file, its data inlined) to
+    its job page (the outcome and the stage rows) and to its map (markers over the orthophoto)."""
+    url = report.resolve().as_uri()
+    d = _chromium()
+    try:
+        d.get(url)
+        t0 = time.perf_counter()
+        while not (job := d.execute_script("return location.hash")) and time.perf_counter() - t0 < 10:
+            time.sleep(0.01)  # the report routes itself to its job
+        pages = {"report": (url + job, JOB_SHOWN)}
+        if job.startswith("#/jobs/"):
+            pages["report_map"] = (url + job.rstrip("/") + "/map", MAP_SHOWN)
+        return _time_pages(d, pages, runs)
     finally:
         d.quit()
 
@@ -173,6 +212,7 @@ def main() -> None:
     ap.add_argument("--images", type=int, default=200)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--report", type=Path, help="a static report.html to time too (midview demo's)")
     args = ap.parse_args()
     import httpx
     from servers import free_ports
@@ -198,6 +238,8 @@ def main() -> None:
         job_id = make_job(tmp / "data", args.images)
         pages = page_times(base, job_id, args.runs)
         api = api_times(base, job_id, args.runs)
+        if args.report:
+            pages |= report_times(args.report, args.runs)
     finally:
         proc.terminate()
         proc.wait(15)
@@ -215,7 +257,8 @@ def main() -> None:
             ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True
         ).stdout.strip()
         doc = {"command": "python " + " ".join(sys.argv), "commit": commit, "cores": os.cpu_count(),
-               "images": args.images, "runs": args.runs, "figures": figures}  # fmt: skip
+               "images": args.images, "runs": args.runs, "report": str(args.report or ""),
+               "figures": figures}  # fmt: skip
         args.json.write_text(json.dumps(doc, indent=1) + "\n")
 
 
