@@ -23,6 +23,7 @@ def _pairs(path):
         return {(pm.name0, pm.name1): pm.matches[pm.inliers] for pm in mf.iter_pairs()}
 
 
+@pytest.mark.slow
 def test_baselines_beside_match_what_in_process_does(tiny_scene, tmp_path):
     child = BaselinesBeside(tiny_scene, tmp_path / "beside", ALIKED, SIFT)
     try:
@@ -64,6 +65,7 @@ def test_a_failing_child_says_where_its_log_is(tmp_path):
     assert "Traceback" in child.log.read_text()
 
 
+@pytest.mark.slow
 def test_the_child_reconstructs_the_baselines_once_the_aerial_model_is_ready(tiny_scene, tmp_path):
     """Given the job, the child waits for the parent's word that the aerial model is done, then makes
     the baselines' combined reconstructions beside the pipeline: the same as the demo makes in-process."""

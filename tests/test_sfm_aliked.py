@@ -239,6 +239,7 @@ def test_a_failed_georeference_exits_non_zero_and_keeps_the_model(two_stations, 
     assert "(failed)" in r.output  # the summary line still prints
 
 
+@pytest.mark.slow
 def test_aliked_on_the_tiny_scene(tiny_scene, tmp_path):
     """ALIKED + LightGlue on all pairs (the audit's run: NRI 5/10 of a broken model, 0/5 georef
     inliers, 9 m residuals). Nadir images 180 degrees apart (serpentine flight) match once turned north

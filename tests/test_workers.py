@@ -420,6 +420,7 @@ def test_transient_errors():
 
 
 # -- embedded dispatcher (midview serve) ---------------------------------------------------------
+@pytest.mark.slow
 def test_embedded_dispatcher_runs_a_job(tiny_survey, tmp_path):
     """`midview serve`'s app (SQLite, local storage, embedded thread) runs a job, a cancel stops one."""
     from conftest import upload_survey, wait_for_job
@@ -499,6 +500,7 @@ def service(service_settings, celery_worker):
         yield types.SimpleNamespace(app=app, client=client, tenant=tenant, worker=celery_worker)
 
 
+@pytest.mark.slow
 def test_a_worker_node_offers_its_device_and_the_api_picks_the_profile_from_it(
     service_settings, celery_worker
 ):
@@ -532,6 +534,7 @@ def test_a_worker_node_offers_its_device_and_the_api_picks_the_profile_from_it(
         d.close()
 
 
+@pytest.mark.slow
 def test_celery_worker_runs_a_job_through_the_broker(service, tiny_survey):
     """POST /jobs -> CeleryDispatcher -> Redis -> worker process -> PostgreSQL + S3 -> GET /jobs."""
     import redis
@@ -575,6 +578,7 @@ def test_celery_worker_runs_a_job_through_the_broker(service, tiny_survey):
     assert c.get("/jobs/nope/log", headers=h).status_code == 404
 
 
+@pytest.mark.slow
 def test_celery_failure_fails_the_job_and_queues_the_webhook(service, tiny_survey):
     """A stage error that no retry can fix (the project's cameras.json names a camera of another size
     than the images) fails the stage and the job, with the error text, and queues the job.failed webhook
@@ -654,6 +658,7 @@ def test_task_error_policy(monkeypatch):
     assert all(0.5 * 2 * 2**n <= execute.backoff_s(n) <= 1.5 * 2 * 2**n for n in range(5))
 
 
+@pytest.mark.slow
 def test_periodic_tasks_run_on_the_worker(service):
     """What celery beat sends: reconcile (nothing stalled here) and the webhook deliveries."""
     from workers.celery_app import DELIVER_WEBHOOKS, RECONCILE, make_app
@@ -712,6 +717,7 @@ def _process_gone(pid: int, timeout_s: float) -> bool:
     return False
 
 
+@pytest.mark.slow
 def test_celery_cancel_stops_the_job(service, tiny_survey):
     """Cancel while train_splat runs: the running task is terminated (revoke): its pool process is
     killed and replaced, its state is REVOKED, the stage reports no more progress; the chain stops, the
@@ -797,6 +803,7 @@ def _running_job(s, project_id, stage, node, heartbeat_age_s, now):
     return job.id
 
 
+@pytest.mark.slow
 def test_reconciler_redispatches_the_stages_of_a_dead_node(service):
     """A stage whose heartbeat is old and whose node does not answer a Celery ping (the real worker
     answers, a made-up node does not) is given up and dispatched again, although the dead node's message
@@ -868,6 +875,7 @@ def test_reconciler_redispatches_the_stages_of_a_dead_node(service):
             s.commit()
 
 
+@pytest.mark.slow
 def test_a_job_whose_worker_node_died_completes(service, tiny_survey):
     """The job's stage was running on a node that died (old heartbeat, no answer to a ping, its message
     left in `unacked`): the periodic reconcile task on the real worker dispatches it again, and the job
