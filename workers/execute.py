@@ -187,6 +187,11 @@ class JobInfo:
     log_run_id: str | None = None  # the stage run a fan-out unit's log goes to (its stage's running run)
     forced: bool = False  # run the stage even where it is up to date (a forced rerun)
 
+    @property
+    def log_run(self) -> str | None:
+        """The stage run this unit of work's log goes to."""
+        return self.run_id or self.log_run_id
+
 
 def _info(row: Job) -> JobInfo:
     options = JobOptions.model_validate(row.options or {})
@@ -286,12 +291,12 @@ def _begin(
     return info
 
 
-def _keep_log(ctx: Context, run_id: str | None) -> Callable[[StageLog], None]:
+def _keep_log(ctx: Context, info: JobInfo) -> Callable[[StageLog], None]:
     """Writes what a stage log collected to the run's log, in a session of its own."""
 
     def flush(stage_log: StageLog) -> None:
         with ctx.session() as s:
-            stage_log.write(s, run_id)
+            stage_log.write(s, info.log_run)
 
     return flush
 
@@ -342,7 +347,7 @@ class ProgressReporter:
             with self.ctx.session() as s:
                 crud.update_job_progress(s, self.info.id, self.overall(stage, fraction), stage, message)
                 if self.stage_log is not None:
-                    self.stage_log.write(s, self.info.log_run_id or self.info.run_id)
+                    self.stage_log.write(s, self.info.log_run)
                 if self.info.run_id is not None:  # a progress report is a heartbeat too
                     s.execute(
                         sa.update(StageRun)
@@ -441,7 +446,7 @@ def execute_stage(
         raise ValueError(f"unknown stage {stage!r}; stages are {list(STAGES)}")
     ctx = get_context(settings)
     info = _begin(ctx, job_id, stage, worker, node=node)
-    with captured(_keep_log(ctx, info.run_id)) as stage_log:
+    with captured(_keep_log(ctx, info)) as stage_log:
         return _execute_stage(ctx, info, job_id, stage, stage_log)
 
 
@@ -503,7 +508,7 @@ def prepare_fan_out(
         raise ValueError(f"stage {stage} is not a fan-out stage")
     ctx = get_context(settings)
     info = _begin(ctx, job_id, stage, worker, node=node)
-    with captured(_keep_log(ctx, info.run_id)) as stage_log:
+    with captured(_keep_log(ctx, info)) as stage_log:
         return _prepare_fan_out(ctx, info, stage, fan, stage_log)
 
 
@@ -545,7 +550,7 @@ def execute_unit(
         raise ValueError(f"stage {stage} is not a fan-out stage")
     ctx = get_context(settings)
     info = _begin(ctx, job_id, stage, worker, open_run=False)
-    with captured(_keep_log(ctx, info.log_run_id)) as stage_log:
+    with captured(_keep_log(ctx, info)) as stage_log:
         return _execute_unit(ctx, info, stage, unit, fan, stage_log)
 
 
