@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
@@ -581,7 +581,7 @@ def _execute_unit(
     return {"stage": stage, "unit": unit, "files": files, "seconds": round(seconds, 2)}
 
 
-def _json_safe(value: Any) -> Any:
+def _json_safe(value: object) -> object:
     """NaN/inf -> None (PostgreSQL JSONB refuses them), recursively."""
     if isinstance(value, float):
         return value if math.isfinite(value) else None
@@ -604,21 +604,21 @@ def finalize(job_id: str, *, settings: Settings) -> dict:
         if row is not None and row.status == JobStatus.succeeded:
             return dict(row.metrics or {})
         info = _info(_live_row(s, job_id))
-    metrics: dict[str, Any] = {}
+    metrics: dict[str, object] = {}
     for stage in info.stages:
         try:
             marker = json.loads(ctx.storage.get_bytes(jobsync.files_key(info.prefix, f"stages/{stage}.json")))
         except StorageKeyError:
             raise RuntimeError(f"stage {stage} has no marker in storage: it did not finish") from None
         metrics[stage] = _json_safe(marker.get("summary") or {})
-    metrics["outcome"] = job_outcome(metrics)
+    outcome = metrics["outcome"] = job_outcome(metrics)
     with ctx.session() as s:
         row = _live_row(s, job_id)
         crud.update_job_results(s, row, metrics=metrics)
         crud.set_job_status(s, row, JobStatus.succeeded)
         enqueue_job_event(s, row)
-    if metrics["outcome"]["warnings"]:
-        log.warning("job %s succeeded with warnings: %s", job_id, "; ".join(metrics["outcome"]["warnings"]))
+    if outcome["warnings"]:
+        log.warning("job %s succeeded with warnings: %s", job_id, "; ".join(outcome["warnings"]))
     log.info("job %s succeeded: %s", job_id, metrics)
     return metrics
 
