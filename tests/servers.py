@@ -471,23 +471,55 @@ def start_uvicorn(
     raise RuntimeError(f"uvicorn exited with {proc.returncode}:\n{_tail(log)}")
 
 
+def build_wheel(dest: Path) -> Path:
+    """The project's wheel in dest, built as `pip install .` builds it (setup.py installs the dashboard's
+    front-end libraries with npm when the checkout has none)."""
+    root = Path(__file__).resolve().parents[1]
+    pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "wheel", "-q", "--no-deps", "-w"]
+    r = subprocess.run([*pip, str(dest), "--no-build-isolation", str(root)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    (wheel,) = dest.glob("midview-*.whl")
+    return wheel
+
+
+def install_wheel(dest: Path) -> Path:
+    """The project's wheel (build_wheel) installed without its dependencies into dest/site, a folder to
+    put first on PYTHONPATH: the package as a plain install has it, no dev checkout beside it. Returns
+    dest/site."""
+    site = dest / "site"
+    pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "install", "-q", "--no-deps"]
+    r = subprocess.run([*pip, "--target", str(site), str(build_wheel(dest))], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return site
+
+
 def start_midview_serve(
-    data_dir: Path, api_key: str, log: Path, env_extra: dict[str, str] | None = None, timeout: float = 60.0
+    data_dir: Path,
+    api_key: str,
+    log: Path,
+    env_extra: dict[str, str] | None = None,
+    timeout: float = 60.0,
+    site: Path | None = None,
 ) -> tuple[subprocess.Popen, str]:
     """`midview serve` (the console script, else `python -m cli.main`) on a free port of 127.0.0.1 with
     its data in data_dir and a known API key, in its own process group; (process, base URL) once GET
-    /healthz answers 200, AssertionError with the log's tail when it does not start."""
+    /healthz answers 200, AssertionError with the log's tail when it does not start. With `site` (from
+    install_wheel) it runs the installed package from outside the checkout instead."""
     import httpx
 
     (port,) = free_ports(1)
     env = {k: v for k, v in os.environ.items() if not k.startswith("MIDVIEW_")}
     env.update({"MIDVIEW_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", **(env_extra or {})})
     exe = Path(sys.executable).with_name("midview")
-    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "cli.main"]
+    cmd = [str(exe)] if exe.is_file() and site is None else [sys.executable, "-m", "cli.main"]
+    cwd = Path(__file__).resolve().parents[1]
+    if site is not None:
+        env["PYTHONPATH"] = str(site)
+        cwd = site.parent
     args = [*cmd, "serve", "--port", str(port), "--data-dir", str(data_dir), "--api-key", api_key]
     with open(log, "wb") as out:
-        proc = subprocess.Popen(args, cwd=Path(__file__).resolve().parents[1], env=env, stdout=out,
-                                stderr=subprocess.STDOUT, start_new_session=True)  # fmt: skip
+        proc = subprocess.Popen(args, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)  # fmt: skip
     base = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + timeout
     while True:

@@ -1,9 +1,11 @@
 """The web dashboard in a real browser: headless Chromium (Debian's package) driven by Selenium against
-`midview serve` (SQLite, local storage, the embedded worker) in its own process. Signs in, creates a
-project, uploads a survey through the page's file inputs (the API's multipart uploads), checks the POS,
-starts a job and watches it to the end through the event stream, opens the map and a ground image's
-page, and checks what they show; then the same pages 390 px wide. Screenshots go to
-runs/test-artifacts/dashboard/ (or MIDVIEW_TEST_ARTIFACTS); the browser console must stay free of errors.
+`midview serve` (SQLite, local storage, the embedded worker) in its own process, run from a plain
+install of the package (its wheel, installed apart from the checkout, as `pip install` and the Docker
+image have it). Signs in, creates a project, uploads a survey through the page's file inputs (the API's
+multipart uploads), checks the POS, starts a job and watches it to the end through the event stream,
+opens the map and a ground image's page, and checks what they show; then the same pages 390 px wide.
+Screenshots go to runs/test-artifacts/dashboard/ (or MIDVIEW_TEST_ARTIFACTS); the browser console must
+stay free of errors.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import json
 import os
 import re
 import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -50,13 +54,23 @@ def survey(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    """`midview serve` on a free port with a known API key; its base URL."""
-    from servers import _stop, start_midview_serve
+    """`midview serve` from a plain install of the package (its wheel, installed apart from the checkout:
+    the page's three.js and Leaflet come from the package, no npm at test time) on a free port with a
+    known API key; its base URL."""
+    from servers import _stop, install_wheel, start_midview_serve
 
     folder = tmp_path_factory.mktemp("serve")
+    site = install_wheel(folder / "install")
     SERVE["data"] = folder / "data"
     env = {"OMP_NUM_THREADS": "1", "MIDVIEW_EVENTS_POLL_S": "0.2"}
-    proc, base = start_midview_serve(folder / "data", KEY, folder / "serve.log", env)
+    modules = "import api, cli, services, shared, workers as w; print(api.__file__, w.__file__)"
+    where = subprocess.run(  # the server's own modules: the installed ones, not the checkout's
+        [sys.executable, "-c", modules],
+        cwd=site.parent, env={**os.environ, "PYTHONPATH": str(site)}, capture_output=True, text=True,
+    )  # fmt: skip
+    assert where.returncode == 0 and all(Path(f).is_relative_to(site) for f in where.stdout.split()), where
+    assert (site / "api" / "ui" / "node_modules" / "three" / "build" / "three.module.js").is_file()
+    proc, base = start_midview_serve(folder / "data", KEY, folder / "serve.log", env, site=site)
     try:
         yield base
     finally:
