@@ -448,10 +448,9 @@ def test_visible_points_are_the_nearest_sparse_points_in_view():
     assert len(scene.visible_points(GCAM, pose_ypr([0.0, -15.0, 1.6], 180.0, 0.0), 96, 10.0)) < len(pts)
     # the covisibility of a placement with the exact depth agrees with the points' and the probe's surface
     scene.depth_fn = raycast
-    conf = vp.confs["ground-aware"]
-    pts = scene.ground_surface("ground/G0001.jpg", conf, 60.0, "points")
+    pts = scene.ground_surface("ground/G0001.jpg", 96, 60.0, "points")
     assert scene.covisible_fraction(pts, GCAM, g, 96) > 0.9
-    assert len(scene.ground_surface("ground/G0001.jpg", conf, 60.0, "depth")) > 1000
+    assert len(scene.ground_surface("ground/G0001.jpg", 96, 60.0, "depth")) > 1000
 
 
 def test_paper_views_are_chosen_by_what_they_see_of_the_ground_cameras_surface():
@@ -464,7 +463,7 @@ def test_paper_views_are_chosen_by_what_they_see_of_the_ground_cameras_surface()
     scene.depth_fn = raycast
     conf = merge_conf(vp.confs["paper"], {"views_per_ground_image": 1})
     paper = vp.plan_paper(scene, conf)
-    surface = scene.ground_surface("ground/G0001.jpg", conf, 60.0, "points")
+    surface = scene.ground_surface("ground/G0001.jpg", 96, 60.0, "points")
     cov = {v.name: scene.covisible_fraction(surface, v.camera, v.pose, 96) for v in paper}
     # the oblique from the south sees all of it, those from the east and west a third (the wall at a
     # grazing angle, the street beside it)

@@ -52,7 +52,7 @@ from services.views.ground_aware import (
     surface_targets,
 )
 from services.views.paper import plan_paper, select_paper
-from services.views.planning import NoViews, cover_aerial, plan
+from services.views.planning import NoViews, plan
 from services.views.proxy import PlaneProxy
 from services.views.rays import paper_viewpoint, ray_plane, ray_target_points
 from services.views.rendering import (
@@ -66,7 +66,7 @@ from services.views.rendering import (
     read_render,
 )
 from services.views.scene import Scene, load_scene, place_ground_on_terrain, scene_terrain_z, terrain_height
-from services.views.specs import ViewSpec, read_views, summary, write_views
+from services.views.specs import ViewSpec, cover_aerial, read_views, summary, write_views
 
 __all__ = [
     "PlaneProxy",

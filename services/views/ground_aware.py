@@ -8,7 +8,6 @@ import logging
 
 import numpy as np
 
-from services.conf import merge_conf
 from services.geometry import look_at, optical_axis, pitch_deg, scaled_camera
 from services.views.rays import depth_at, horizontal, unproject
 from services.views.scene import Scene
@@ -23,10 +22,10 @@ def ground_target(g: str, scene: Scene, conf: dict) -> tuple[np.ndarray, str]:
     the scene (its own depth probe, the sparse points, the terrain), else `look_ahead_m` ahead."""
     gc = conf["ground"]
     cam, pose = scene.ground_cameras[g], scene.ground_poses[g]
-    T = scene.carved_target(cam, pose, conf, gc["min_target_m"], gc["max_target_m"])
+    T = scene.carved_target(cam, pose, conf["target"]["carve"], gc["min_target_m"], gc["max_target_m"])
     if T is not None:
         return T, "carved"
-    T, how = scene.target(cam, pose, conf, gc["min_target_m"], gc["max_target_m"])
+    T, how = scene.target(cam, pose, conf["target"], gc["min_target_m"], gc["max_target_m"])
     if T is None:
         T = pose.center + gc["look_ahead_m"] * optical_axis(pose)
         T[2] = max(T[2], scene.terrain_z)
@@ -63,7 +62,7 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
     gc = conf["ground"]
     min_cov = float(gc["min_covisible"] or 0.0)
     surface = (
-        scene.ground_surface(g, conf, 1.5 * gc["max_target_m"], gc["surface"])
+        scene.ground_surface(g, gc["covisibility_width"], 1.5 * gc["max_target_m"], gc["surface"])
         if min_cov > 0 and scene.depth_fn
         else None
     )
@@ -107,9 +106,7 @@ def _placements(
     cam = scaled_camera(cam_g, gc["max_width"], gc["fov_scale"])
     # the aerial camera seeing T most like the ground camera does (oblique ones only)
     probe = ViewSpec("probe", "ground-aware", g, cam, look_at(C_g + [0, 0, 10.0], T), T)
-    anchors = [
-        n for _, n in aerial_candidates(probe, scene, merge_conf(conf, {"candidates": {"skip_nadir": True}}))
-    ]
+    anchors = [n for _, n in aerial_candidates(probe, scene, {**conf["candidates"], "skip_nadir": True})]
     out, weak = [], []  # weak: unoccluded but below min_cov, (covisible fraction, view)
     for height, placement in gc["placements"]:
         if placement == "above":
@@ -164,7 +161,7 @@ def plan_ground_aware(scene: Scene, conf: dict, n_per_ground: int) -> list[ViewS
     for g in sorted(scene.ground_poses):
         cands = ground_view_candidates(g, scene, conf)
         for v in cands[:n_per_ground]:
-            views.append(assign_candidates(v, scene, conf))
+            views.append(assign_candidates(v, scene, conf["candidates"]))
         if not cands:
             logger.warning("%s: no unoccluded intermediate view", g)
     return views

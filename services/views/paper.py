@@ -24,7 +24,7 @@ def plan_paper(scene: Scene, conf: dict) -> list[ViewSpec]:
     views = []
     for a in sorted(scene.aerial_poses):
         cam, pose = scene.aerial_cameras[a], scene.aerial_poses[a]
-        T, how = scene.target(cam, pose, conf)
+        T, how = scene.target(cam, pose, conf["target"])
         if T is None:
             logger.debug("%s: the principal ray meets nothing", a)
             continue
@@ -46,7 +46,7 @@ def plan_paper(scene: Scene, conf: dict) -> list[ViewSpec]:
                     "height_fraction": fraction,
                 },
             )
-            views.append(assign_candidates(v, scene, conf))
+            views.append(assign_candidates(v, scene, conf["candidates"]))
     return views
 
 
@@ -78,7 +78,7 @@ def _covisible_scores(views: list[ViewSpec], g: str, scene: Scene, conf: dict, p
     width = conf["ground"]["covisibility_width"]
     max_dist = conf["candidates"]["max_ground_distance_m"]
     pose_g = scene.ground_poses[g]
-    surface = scene.ground_surface(g, conf, max_dist, conf["paper"]["surface"]) if scene.depth_fn else None
+    surface = scene.ground_surface(g, width, max_dist, conf["paper"]["surface"]) if scene.depth_fn else None
     if surface is None:
         return None
     out = []

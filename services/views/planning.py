@@ -1,5 +1,5 @@
-"""Planning the intermediate views (`views.json`): the planners of conf["planner"], every aerial image
-made a candidate of some view, and `main`."""
+"""Planning the intermediate views (`views.json`): the planners of conf["planner"], then every aerial
+image made a candidate of some view, and `main`."""
 
 from __future__ import annotations
 
@@ -8,45 +8,18 @@ from pathlib import Path
 
 from services.colmap_model import Camera
 from services.conf import merge_conf
-from services.geometry import angle_deg, pitch_deg
 from services.pos import LocalFrame, PosRecord
 from services.sfm import read_georef_frame
 from services.views.confs import BASE, confs
 from services.views.ground_aware import plan_ground_aware
 from services.views.paper import plan_paper, select_paper
 from services.views.scene import DepthFn, Scene, load_scene
-from services.views.specs import ViewSpec, sees, summary, write_views
+from services.views.specs import ViewSpec, cover_aerial, summary, write_views
 from shared.logging import stage
 
 logger = logging.getLogger("midview.viewpoints")
 
-__all__ = ["NoViews", "confs", "cover_aerial", "main", "plan"]
-
-
-def cover_aerial(views: list[ViewSpec], scene: Scene, conf: dict) -> int:
-    """Make every oblique aerial image that sees some view target a candidate of at least one view
-    (the view whose direction is closest to its own). Returns how many were added."""
-    covered = {a for v in views for a in v.aerial}
-    cc = conf["candidates"]
-    added = 0
-    for a in sorted(scene.aerial_poses):
-        if a in covered:
-            continue
-        pose, cam = scene.aerial_poses[a], scene.aerial_cameras[a]
-        if cc["skip_nadir"] and pitch_deg(pose) < cc["nadir_pitch_deg"]:
-            continue
-        best = None
-        for v in views:
-            if not sees(cam, pose, v.target, cc["margin"]):
-                continue
-            ang = angle_deg(v.center - v.target, pose.center - v.target)
-            if ang <= cc["max_angle_deg"] and (best is None or (ang, v.name) < best[:2]):
-                best = (ang, v.name, v)
-        if best is not None:
-            best[2].aerial = [*best[2].aerial, a]
-            covered.add(a)
-            added += 1
-    return added
+__all__ = ["NoViews", "confs", "main", "plan"]
 
 
 def plan(scene: Scene, conf: dict) -> list[ViewSpec]:
@@ -65,7 +38,7 @@ def plan(scene: Scene, conf: dict) -> list[ViewSpec]:
     keep_bare = bool(conf["ground"]["keep_without_aerial"])
     views = [v for v in views if v.ground and (v.aerial or (keep_bare and v.planner == "ground-aware"))]
     if conf["candidates"]["cover_aerial"]:
-        added = cover_aerial(views, scene, conf)
+        added = cover_aerial(views, scene, conf["candidates"])
         if added:
             logger.info("%d aerial images added as candidates so that each is covered", added)
     return sorted(views, key=lambda v: v.name)

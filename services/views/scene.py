@@ -48,13 +48,13 @@ class Scene:
     _aerial_maps: dict[int, list] = field(default_factory=dict, repr=False)  # aerial_depth_maps' cache
 
     def target(
-        self, camera: Camera, pose: Pose, conf: dict, min_dist: float = 0.0, max_dist: float = np.inf
+        self, camera: Camera, pose: Pose, tc: dict, min_dist: float = 0.0, max_dist: float = np.inf
     ) -> tuple[np.ndarray | None, str]:
-        """Where the principal ray meets the scene beyond `min_dist`: (T, method) or (None, "none").
-        With conf["target"]["probe_from_min"] the depth probe stands `min_dist` ahead on the ray, so that
-        what lies nearer (a floater in front of a street-level camera) hides nothing beyond it."""
+        """Where the principal ray meets the scene beyond `min_dist`: (T, method) or (None, "none"), by
+        the planners' `target` conf `tc`. With tc["probe_from_min"] the depth probe stands `min_dist`
+        ahead on the ray, so that what lies nearer (a floater in front of a street-level camera) hides
+        nothing beyond it."""
         c, d = pose.center, optical_axis(pose)
-        tc = conf["target"]
         start = float(min_dist) if tc["probe_from_min"] and np.isfinite(min_dist) else 0.0
         probe_pose = Pose.from_center(pose.R.T, c + start * d) if start > 0 else pose
         probe = self.depth_probe(camera, probe_pose, tc["probe_width"])  # a failed probe: the points
@@ -84,11 +84,10 @@ class Scene:
         return self._aerial_maps[width]
 
     def carved_target(
-        self, camera: Camera, pose: Pose, conf: dict, min_dist: float, max_dist: float
+        self, camera: Camera, pose: Pose, cc: dict, min_dist: float, max_dist: float
     ) -> np.ndarray | None:
         """Where the principal ray leaves the free space the aerial cameras' depth carves (rays.carve_ray,
-        conf["target"]["carve"]); None without a depth probe or where it meets nothing."""
-        cc = conf["target"]["carve"]
+        by the planners' `target.carve` conf `cc`); None without a depth probe or where it meets nothing."""
         maps = self.aerial_depth_maps(int(cc["width"])) if cc["enabled"] else []
         if not maps:
             return None
@@ -156,11 +155,10 @@ class Scene:
         first[1:] = key[order][1:] != key[order][:-1]
         return self.points[idx[order[first]]]
 
-    def ground_surface(self, g: str, conf: dict, max_dist: float, kind: str) -> np.ndarray | None:
+    def ground_surface(self, g: str, width: int, max_dist: float, kind: str) -> np.ndarray | None:
         """What ground camera g sees, for covisibility checks: `kind` "points" (visible_points) or
-        "depth" (visible_surface: its depth probe), probed conf["ground"]["covisibility_width"] pixels
-        wide; None when there is nothing."""
-        width = conf["ground"]["covisibility_width"]
+        "depth" (visible_surface: its depth probe), probed `width` pixels wide; None when there is
+        nothing."""
         cam, pose = self.ground_cameras[g], self.ground_poses[g]
         if kind == "points":
             pts = self.visible_points(cam, pose, width, max_dist)

@@ -71,9 +71,9 @@ def sees(camera: Camera, pose: Pose, X: np.ndarray, margin: float) -> bool:
     return bool(z[0] > 0 and -mx <= uv[0, 0] <= camera.width + mx and -my <= uv[0, 1] <= camera.height + my)
 
 
-def aerial_candidates(view: ViewSpec, scene: Scene, conf: dict) -> list[tuple[float, str]]:
-    """(angle, aerial name) of the aerial images that see the view's target, most alike first."""
-    cc = conf["candidates"]
+def aerial_candidates(view: ViewSpec, scene: Scene, cc: dict) -> list[tuple[float, str]]:
+    """(angle, aerial name) of the aerial images that see the view's target, most alike first (`cc`: the
+    planners' `candidates` conf)."""
     u_v = view.center - view.target
     nadir_view = pitch_deg(view.pose) < cc["nadir_pitch_deg"]
     out = []
@@ -88,9 +88,8 @@ def aerial_candidates(view: ViewSpec, scene: Scene, conf: dict) -> list[tuple[fl
     return sorted(out)
 
 
-def ground_candidates(view: ViewSpec, scene: Scene, conf: dict) -> list[tuple[float, str]]:
+def ground_candidates(view: ViewSpec, scene: Scene, cc: dict) -> list[tuple[float, str]]:
     """(angle, ground name) of the ground images (POS) that see the view's target, most alike first."""
-    cc = conf["candidates"]
     u_v = view.center - view.target
     out = []
     for g, pose in scene.ground_poses.items():
@@ -104,11 +103,10 @@ def ground_candidates(view: ViewSpec, scene: Scene, conf: dict) -> list[tuple[fl
     return sorted(out)
 
 
-def assign_candidates(view: ViewSpec, scene: Scene, conf: dict) -> ViewSpec:
+def assign_candidates(view: ViewSpec, scene: Scene, cc: dict) -> ViewSpec:
     """Fill the view's candidate lists (its own source image first)."""
-    cc = conf["candidates"]
-    a = [n for _, n in aerial_candidates(view, scene, conf)]
-    g = [n for _, n in ground_candidates(view, scene, conf)]
+    a = [n for _, n in aerial_candidates(view, scene, cc)]
+    g = [n for _, n in ground_candidates(view, scene, cc)]
     if view.source in scene.aerial_poses:
         a = [view.source] + [n for n in a if n != view.source]
     if view.source in scene.ground_poses:
@@ -116,6 +114,32 @@ def assign_candidates(view: ViewSpec, scene: Scene, conf: dict) -> ViewSpec:
     view.aerial = a[: cc["aerial"]]
     view.ground = g[: cc["ground"]]
     return view
+
+
+def cover_aerial(views: list[ViewSpec], scene: Scene, cc: dict) -> int:
+    """Make every oblique aerial image that sees some view target a candidate of at least one view
+    (the view whose direction is closest to its own; `cc`: the planners' `candidates` conf). Returns how
+    many were added."""
+    covered = {a for v in views for a in v.aerial}
+    added = 0
+    for a in sorted(scene.aerial_poses):
+        if a in covered:
+            continue
+        pose, cam = scene.aerial_poses[a], scene.aerial_cameras[a]
+        if cc["skip_nadir"] and pitch_deg(pose) < cc["nadir_pitch_deg"]:
+            continue
+        best = None
+        for v in views:
+            if not sees(cam, pose, v.target, cc["margin"]):
+                continue
+            ang = angle_deg(v.center - v.target, pose.center - v.target)
+            if ang <= cc["max_angle_deg"] and (best is None or (ang, v.name) < best[:2]):
+                best = (ang, v.name, v)
+        if best is not None:
+            best[2].aerial = [*best[2].aerial, a]
+            covered.add(a)
+            added += 1
+    return added
 
 
 def stem(name: str) -> str:
