@@ -31,6 +31,16 @@ def test_estimates_grow_with_the_survey_and_the_3dgs_keeps_its_budget():
     assert costs.estimate(JobOptions.model_validate({"profile": "gpu"}), 20, 10)["total_s"] is None
 
 
+def test_the_3dgs_of_a_small_survey_is_counted_in_passes_over_its_images():
+    """The cpu profile's 3DGS trains at most splat_epochs passes over the aerial images it trains on
+    (every 8th held out): a 20-image survey 60 x 17 steps, isprs's 60 images the whole splat_steps."""
+    cpu = JobOptions()
+    assert cpu.splat_epochs == 60
+    assert costs.units(cpu, 20, 4)["train_splat"] == 60 * 17
+    assert costs.units(cpu, 60, 20)["train_splat"] == cpu.splat_steps == 3000
+    assert costs.units(JobOptions(splat_epochs=None), 20, 4)["train_splat"] == 3000
+
+
 def test_the_fit_of_runs_recovers_their_rates():
     """Runs made from known seconds per unit give those rates back, and a leave-one-out error of 0."""
     rates = {"aerial_sfm": 3.0, "train_splat": 0.1, "plan_views": 1.0, "render_views": 2.0,

@@ -13,7 +13,7 @@ from services.splat.model import create_splats, sh_degree_of, splats_from_tensor
 from services.splat.ply import load_ply, save_ply
 from services.splat.projection import viewmat_from_pose
 from services.splat.render import look_at, render
-from services.splat.train import SceneData, Trainer, View, confs, scaled_view
+from services.splat.train import SceneData, Trainer, View, check_conf, confs, scaled_view
 
 W, H = 32, 24
 CAM = Camera("PINHOLE", W, H, [30.0, 30.0, 16.0, 12.0])
@@ -315,6 +315,22 @@ def test_rescale_schedule_floors_and_errors():
     assert c["sh_degree_interval"] == 1
     with pytest.raises(ValueError):
         rescale_schedule(confs["fast"], 0)
+
+
+def test_a_small_block_trains_at_most_max_epochs_passes():
+    """max_epochs caps the steps at that many passes over the training images, the schedule and the
+    checkpoints scaled with them; a larger block, or no cap, keeps the conf as it is."""
+    from services.splat import epochs_capped, rescale_schedule
+
+    conf = merge_conf(rescale_schedule(confs["fast"], 3000), {"max_epochs": 60, "ckpt_every": 300})
+    small = epochs_capped(conf, 17)
+    assert small["steps"] == 1020 and small["ckpt_every"] == 102
+    assert small["strategy"]["refine_stop_iter"] == int(conf["strategy"]["refine_stop_iter"] * 1020 / 3000)
+    assert small == merge_conf(rescale_schedule(conf, 1020), {"ckpt_every": 102})
+    assert epochs_capped(conf, 52) is conf  # 3120 passes' steps: the conf's 3000 stand
+    assert epochs_capped(merge_conf(conf, {"max_epochs": None}), 17)["steps"] == 3000
+    with pytest.raises(ValueError, match="max_epochs"):
+        check_conf(merge_conf(conf, {"max_epochs": 0}))
 
 
 def test_pipeline_uses_the_same_rescaling(tmp_path):

@@ -2,7 +2,8 @@
 (docs/results/pipeline-time.json, every default stage of `midview run` alone on a 2-core machine).
 
 Each stage costs `seconds_per_unit x units`, its units counted from the survey and the options: the
-aerial SfM per aerial image, the 3DGS per training step (at most its time budget), the views' planning,
+aerial SfM per aerial image, the 3DGS per training step (at most splat_epochs passes over the aerial
+images it trains on, every 8th held out; at most its time budget), the views' planning,
 rendering, matching and reduction per planned view (ground images x views per ground image x planners),
 the combined reconstruction per ground image. FIT holds the fitted seconds per unit with the fit's
 leave-one-out relative error (`bench/pipeline_time.py --fit` prints it; tests/test_costs.py checks it
@@ -12,6 +13,7 @@ so its estimate is None.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from services.pipeline.options import JobOptions
@@ -38,9 +40,12 @@ def units(options: JobOptions, n_aerial: int, n_ground: int) -> dict[str, float]
     """The units of each default stage of a job on a survey of n_aerial and n_ground images."""
     planners = 2 if options.view_planner == "both" else 1
     views = float(n_ground * options.views_per_ground_image * planners)
+    steps = float(options.splat_steps)
+    if options.splat_epochs is not None:  # every 8th aerial image held out (services.splat's test_every)
+        steps = min(steps, round(options.splat_epochs * (n_aerial - math.ceil(n_aerial / 8))))
     return {
         "aerial_sfm": float(n_aerial),
-        "train_splat": float(options.splat_steps),
+        "train_splat": steps,
         "plan_views": views,
         "train_blocks": 0.0 if options.block_steps == 0 else float(options.block_steps),
         "render_views": views,
@@ -75,6 +80,11 @@ def estimate(
     return {"stages_s": stages, "total_s": total, "relative_error": dict(fit["relative_error"])}
 
 
+def run_options(run: dict[str, Any]) -> JobOptions:
+    """The options a timed run ran with (runs recorded before splat_epochs existed trained uncapped)."""
+    return JobOptions.model_validate({"splat_epochs": None, **run["options"]})
+
+
 def fit_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """FIT from timed runs ({"survey": {aerial, ground}, "options": JobOptions fields, "stages_s"}): per
     stage the least-squares seconds per unit through the origin; the error of predicting each run's
@@ -85,7 +95,7 @@ def fit_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
         for stage in units(JobOptions(), 1, 1):
             pairs = []
             for r in rs:
-                opts = JobOptions.model_validate(r["options"])
+                opts = run_options(r)
                 n = units(opts, r["survey"]["aerial"], r["survey"]["ground"])[stage]
                 s = r["stages_s"].get(stage)
                 budget = opts.splat_time_budget_s
@@ -101,7 +111,7 @@ def fit_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
         rest = runs[:i] + runs[i + 1 :]
         if not rest:
             continue
-        opts = JobOptions.model_validate(r["options"])
+        opts = run_options(r)
         pred = estimate(opts, r["survey"]["aerial"], r["survey"]["ground"],
                         {"seconds_per_unit": per_unit(rest), "relative_error": {}})  # fmt: skip
         if pred["total_s"]:

@@ -296,6 +296,8 @@ class Job:
         }
         if self.options.splat_time_budget_s is not None:
             over["time_budget_s"] = float(self.options.splat_time_budget_s)
+        if self.options.splat_epochs is not None:
+            over["max_epochs"] = float(self.options.splat_epochs)
         return merge_conf(merge_conf(c, over), self.settings["splat"])
 
     def viewpoint_conf(self) -> dict:

@@ -28,6 +28,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "views_per_ground_image": 2,
         "splat_steps": 3000,
         "splat_time_budget_s": 540.0,
+        "splat_epochs": 60.0,
         "splat_max_width": 400,
         "max_keypoints": 1024,
     },
@@ -36,6 +37,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "views_per_ground_image": 4,
         "splat_steps": 7000,
         "splat_time_budget_s": None,
+        "splat_epochs": None,
         "splat_max_width": 1600,
         "max_keypoints": 4096,
     },
@@ -87,6 +89,14 @@ class JobOptions(BaseModel):
         le=7 * 24 * 3600,
         description="Seconds of 3DGS training at most: fewer than splat_steps iterations when the machine is"
         " slower (the run's length follows the pace of its last iterations); null: all of them",
+    )
+    splat_epochs: float | None = Field(
+        CPU["splat_epochs"],
+        gt=0,
+        le=100_000,
+        description="Passes over the aerial training images at most: a small survey trains fewer than"
+        " splat_steps iterations (splat_epochs x its training images), its schedule scaled with them; null:"
+        " splat_steps",
     )
     block_steps: int = Field(
         0,

@@ -98,12 +98,12 @@ def train_splat(
     """services.splat training on the registered images of `sparse` named `prefix`* in chunks
     (checkpoint at each), so that progress can be reported and a killed run resumes from its last
     chunk."""
-    from services.splat import Trainer, load_scene
+    from services.splat import Trainer, epochs_capped, load_scene
     from services.splat.train import write_views
 
     out.mkdir(parents=True, exist_ok=True)
     data = load_scene(sparse, image_dir, conf["max_width"], prefix, conf["test_every"])
-    trainer = Trainer(conf, data, out, backend)
+    trainer = Trainer(epochs_capped(conf, len(data.train_ids)), data, out, backend)
     conf_file, inputs_file = out / "conf.json", out / "inputs.sha256"
     inputs = splat_inputs_digest(sparse, [v.name for v in data.views], image_dir)
     same_conf = conf_file.is_file() and json.loads(conf_file.read_text()) == json.loads(

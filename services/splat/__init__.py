@@ -17,7 +17,7 @@ from .model import create_splats
 from .ply import load_ply, save_ply
 from .render import load_model, look_at, lowered_pose, render
 from .strategy import DefaultStrategy
-from .train import SceneData, Trainer, View, confs, load_scene, main, rescale_schedule
+from .train import SceneData, Trainer, View, confs, epochs_capped, load_scene, main, rescale_schedule
 
 __all__ = [
     "DefaultStrategy",
@@ -37,6 +37,7 @@ __all__ = [
     "rasterization",
     "render",
     "rescale_schedule",
+    "epochs_capped",
     "resolve_backend",
     "save_ply",
 ]

@@ -77,6 +77,9 @@ _DEFAULT: dict[str, Any] = {
     # learning rate decays over that length. Time-based, so not reproducible step for step
     "time_budget_s": None,
     "budget_every": 50,
+    # passes over the training images at most (None: unbounded): a small block trains fewer than `steps`
+    # steps, its schedule scaled with them (epochs_capped)
+    "max_epochs": None,
     # coarse to fine: the first `coarse_until` of the run's steps (a fraction of its length) render the
     # images at `coarse_scale` of their size (0: off). Cheaper steps place and densify the Gaussians, the
     # rest fit the detail at full size
@@ -148,6 +151,21 @@ def rescale_schedule(conf: dict, steps: int) -> dict:
     return out
 
 
+def epochs_capped(conf: dict, n_images: int) -> dict:
+    """`conf` trained for at most conf["max_epochs"] passes over `n_images` training images: its steps
+    capped at max_epochs x n_images, its schedule (rescale_schedule) and checkpoints scaled with them;
+    `conf` itself without max_epochs or where the cap is not below its steps."""
+    c = merge_conf(_DEFAULT, conf)
+    if not c["max_epochs"] or n_images < 1:
+        return conf
+    steps = max(1, int(round(float(c["max_epochs"]) * n_images)))
+    if steps >= int(c["steps"]):
+        return conf
+    out = rescale_schedule(c, steps)
+    out["ckpt_every"] = max(1, int(c["ckpt_every"]) * steps // int(c["steps"]))
+    return out
+
+
 def check_conf(conf: dict) -> dict:
     """`conf` if its entries are in range, else ValueError with the reason (the kinds are checked by
     `parse_overrides`)."""
@@ -156,6 +174,8 @@ def check_conf(conf: dict) -> dict:
         raise ValueError(f"coarse_until is a fraction of the run, 0 to 1 (0: off), got {c['coarse_until']}")
     if not 0.0 < c["coarse_scale"] <= 1.0:
         raise ValueError(f"coarse_scale must be in (0, 1], got {c['coarse_scale']}")
+    if c["max_epochs"] is not None and not float(c["max_epochs"]) > 0:
+        raise ValueError(f"max_epochs must be positive (None: unbounded), got {c['max_epochs']}")
     return conf
 
 
@@ -688,7 +708,7 @@ def main(
             data.views[0].height,
             len(data.points),
         )
-        trainer = Trainer(conf, data, out, backend)
+        trainer = Trainer(epochs_capped(conf, len(data.train_ids)), data, out, backend)
         (out / "conf.json").write_text(json.dumps(trainer.conf, indent=1))
         write_views(data.views, out / "views.json")
         t_load = time.perf_counter() - t0
