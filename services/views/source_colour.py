@@ -186,15 +186,19 @@ class SourceImages:
         cam = src["camera"]
         Xc = X @ sp.R.T.astype(X.dtype) + sp.t.astype(X.dtype)
         z = Xc[:, 2]
+        if src["pinhole"] is not None:  # no distortion: K alone (pycolmap's projection is slower)
+            fx, fy, cx, cy = src["pinhole"]
+            with np.errstate(divide="ignore", invalid="ignore"):  # z <= 0 is masked out below
+                u = fx * Xc[:, 0] / z + cx
+                v = fy * Xc[:, 1] / z + cy
+            # NaN fails every comparison: the bounds also drop non-finite pixels
+            ok = (z > 1e-3) & (u >= 0) & (u < cam.width - 1) & (v >= 0) & (v < cam.height - 1)
+            idx = np.flatnonzero(ok)
+            return idx, np.stack([u[idx], v[idx]], 1), z[idx]
         idx = np.nonzero(z > 1e-3)[0]
         if len(idx) == 0:
             return idx, np.zeros((0, 2)), np.zeros(0)
-        if src["pinhole"] is not None:  # no distortion: K alone (pycolmap's projection is slower)
-            fx, fy, cx, cy = src["pinhole"]
-            q = Xc[idx]
-            uv = np.stack([fx * q[:, 0] / q[:, 2] + cx, fy * q[:, 1] / q[:, 2] + cy], 1)
-        else:
-            uv = cam.img_from_cam(Xc[idx])
+        uv = cam.img_from_cam(Xc[idx])
         ok = np.all(np.isfinite(uv), axis=1)
         ok &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height - 1)
         return idx[ok], uv[ok], z[idx[ok]]
@@ -253,8 +257,8 @@ class SourceImages:
         idx, uv, z = self.inside(src, X)
         if len(idx) == 0:
             return idx, uv, z, z
-        ray_s = X[idx] - src["pose"].center
-        cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx]) / np.linalg.norm(ray_s, axis=1)
+        ray_s = X[idx] - src["pose"].center.astype(X.dtype)
+        cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx]) / np.sqrt(np.einsum("ij,ij->i", ray_s, ray_s))
         ok = cosang >= np.cos(np.radians(float(c["max_angle_deg"])))
         if depth_fn is not None:
             ds = self.depth_at(src, uv, depth_fn)
