@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 
+import cv2
 import numpy as np
 
 from services import reduce as transfer
@@ -84,3 +85,25 @@ def test_depth_is_trusted_per_view_or_by_the_renderer():
     assert transfer.trusted_depth_views(names, blurry, pc) == [1]
     # too few measured views to judge the renderer
     assert transfer.trusted_depth_views(names, {"a": 0.001, "b": 0.002}, pc) == [0, 1]
+
+
+def test_prior_gate_agrees_with_prior_agreement():
+    """The RANSAC's fast gate (position first) passes exactly the poses prior_agreement finds no
+    reason against, near and far from the prior, with the chi-square check on and off."""
+    from services.colmap_model import Pose
+    from services.reduce.localize import PriorGate, prior_agreement
+
+    rng = np.random.default_rng(1)
+    pc = dict(transfer.default_conf["pnp"])
+    for chi2 in (pc["prior_chi2"], None):
+        pc["prior_chi2"] = chi2
+        gate = PriorGate(TRUE, STD, pc)
+        verdicts = []
+        for _ in range(400):
+            centre = TRUE.center + rng.normal(0.0, rng.choice([1.0, 4.0, 12.0]), 3)
+            w = rng.normal(0.0, np.radians(rng.choice([2.0, 8.0, 30.0])), 3)
+            R = cv2.Rodrigues(w)[0] @ TRUE.R
+            pose = Pose(R, -R @ centre)
+            verdicts.append(gate.gate(pose))
+            assert verdicts[-1] == (not prior_agreement(pose, TRUE, STD, pc)[2])
+        assert 0 < sum(verdicts) < len(verdicts)  # both verdicts were tested

@@ -41,15 +41,15 @@ def lift_aerial_keypoints(
     ok = z > 0
     tree = cKDTree(uv[ok])
     zs = z[ok]
-    d, j = tree.query(np.asarray(kps, float), k=k, distance_upper_bound=radius_px)
-    for n in range(len(kps)):
-        sel = j[n][np.isfinite(d[n])]
-        if len(sel) < 3:
-            continue
-        zz = zs[sel]
-        if zz.max() / zz.min() > max_ratio:
-            continue
-        out[n] = pose.unproject(K, np.asarray(kps[n], float)[None], np.array([np.median(zz)]))[0]
+    kps = np.asarray(kps, float).reshape(-1, 2)
+    d, j = tree.query(kps, k=k, distance_upper_bound=radius_px)
+    d, j = d.reshape(len(kps), k), j.reshape(len(kps), k)
+    zz = np.where(np.isfinite(d), np.append(zs, np.nan)[j], np.nan)  # (N, k): a miss indexes len(zs)
+    found = np.isfinite(zz).sum(1) >= 3
+    with np.errstate(invalid="ignore"):
+        found[found] &= np.nanmax(zz[found], 1) / np.nanmin(zz[found], 1) <= max_ratio
+    if found.any():
+        out[found] = pose.unproject(K, kps[found], np.nanmedian(zz[found], 1))
     return out
 
 

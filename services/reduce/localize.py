@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 
 from services.colmap_model import Camera, Pose
-from services.geometry import rotation_angle_deg
 from services.pos import DEFAULT_STD_ATT, DEFAULT_STD_XY, DEFAULT_STD_Z
 from services.pose_uncertainty import fit_position_std
 from services.reduce.merge import Pairs
@@ -93,31 +92,72 @@ def prior_chi2(dxy: float, dz: float, drot: float, std: tuple[float, float, floa
     return float((dxy / sxy) ** 2 + (dz / sz) ** 2 + (drot / satt) ** 2)
 
 
+class PriorGate:
+    """A POS prior's limits, set once: `differences(pose)` and `reasons(...)` for one pose's report,
+    `gate(pose)` (no reason: it agrees) for the many hypotheses of a RANSAC. Position and attitude each
+    within prior_sigmas standard deviations (or the floors), and jointly (chi-square)."""
+
+    def __init__(self, prior: Pose, prior_std: tuple[float, float, float] | None, pc: dict):
+        self.center = prior.center
+        self.R = prior.R
+        self.std = prior_std or (DEFAULT_STD_XY, DEFAULT_STD_Z, DEFAULT_STD_ATT)
+        sxy, sz, satt = self.std
+        k = pc["prior_sigmas"]
+        self.pc = pc
+        self.limits = {
+            "horizontal_m": max(k * sxy * math.sqrt(2.0), pc["min_position_m"]),
+            "vertical_m": max(k * sz, pc["min_height_m"]),
+            "rotation_deg": max(k * satt * math.sqrt(3.0), pc["min_rotation_deg"]),
+        }
+        self._lim = (self.limits["horizontal_m"], self.limits["vertical_m"], self.limits["rotation_deg"])
+        self._chi2_max = pc.get("prior_chi2") or math.inf
+
+    def _position(self, pose: Pose) -> tuple[float, float]:
+        d = (-pose.R.T @ pose.t) - self.center
+        return math.sqrt(d[0] * d[0] + d[1] * d[1]), abs(float(d[2]))
+
+    def _rotation(self, pose: Pose) -> float:
+        cos = (float(np.vdot(pose.R, self.R)) - 1.0) / 2.0  # trace(R Rp^T) = sum(R * Rp)
+        return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+
+    def differences(self, pose: Pose) -> tuple[float, float, float, float]:
+        """(horizontal m, vertical m, rotation deg, chi-square) of pose to the prior."""
+        dxy, dz = self._position(pose)
+        drot = self._rotation(pose)
+        return dxy, dz, drot, prior_chi2(dxy, dz, drot, self.std, self.pc)
+
+    def gate(self, pose: Pose) -> bool:
+        """Whether the pose agrees with the prior (no reason of `reasons`); the position first."""
+        lim_xy, lim_z, lim_rot = self._lim
+        dxy, dz = self._position(pose)
+        if dxy > lim_xy or dz > lim_z:
+            return False
+        drot = self._rotation(pose)
+        return drot <= lim_rot and prior_chi2(dxy, dz, drot, self.std, self.pc) <= self._chi2_max
+
+    def reasons(self, dxy: float, dz: float, drot: float, chi2: float) -> list[str]:
+        """Why differences disagree with the prior (none: they agree)."""
+        lim_xy, lim_z, lim_rot = self._lim
+        out = []
+        if dxy > lim_xy:
+            out.append(f"{dxy:.1f} m from the POS horizontally (> {lim_xy:.1f})")
+        if dz > lim_z:
+            out.append(f"{dz:.1f} m from the POS vertically (> {lim_z:.1f})")
+        if drot > lim_rot:
+            out.append(f"{drot:.1f} deg from the POS attitude (> {lim_rot:.1f})")
+        if chi2 > self._chi2_max:
+            out.append(f"position and attitude jointly {chi2:.1f} (chi-square > {self._chi2_max:.1f})")
+        return out
+
+
 def prior_agreement(
     pose: Pose, prior: Pose, prior_std: tuple[float, float, float] | None, pc: dict
 ) -> tuple[dict, dict, list[str]]:
-    """How far `pose` is from its POS `prior`: (differences, limits, reasons it disagrees). Position and
-    attitude each within prior_sigmas standard deviations (or the floors), and jointly (chi-square)."""
-    d = pose.center - prior.center
-    dxy, dz = float(np.linalg.norm(d[:2])), float(abs(d[2]))
-    drot = rotation_angle_deg(pose.R @ prior.R.T)
-    sxy, sz, satt = prior_std or (DEFAULT_STD_XY, DEFAULT_STD_Z, DEFAULT_STD_ATT)
-    k = pc["prior_sigmas"]
-    lim_xy, lim_z = max(k * sxy * math.sqrt(2.0), pc["min_position_m"]), max(k * sz, pc["min_height_m"])
-    lim_rot = max(k * satt * math.sqrt(3.0), pc["min_rotation_deg"])
-    chi2 = prior_chi2(dxy, dz, drot, (sxy, sz, satt), pc)
+    """How far `pose` is from its POS `prior`: (differences, limits, reasons it disagrees), see PriorGate."""
+    g = PriorGate(prior, prior_std, pc)
+    dxy, dz, drot, chi2 = g.differences(pose)
     to_pos = {"horizontal_m": dxy, "vertical_m": dz, "rotation_deg": drot, "chi2": chi2}
-    limits = {"horizontal_m": lim_xy, "vertical_m": lim_z, "rotation_deg": lim_rot}
-    reasons = []
-    if dxy > lim_xy:
-        reasons.append(f"{dxy:.1f} m from the POS horizontally (> {lim_xy:.1f})")
-    if dz > lim_z:
-        reasons.append(f"{dz:.1f} m from the POS vertically (> {lim_z:.1f})")
-    if drot > lim_rot:
-        reasons.append(f"{drot:.1f} deg from the POS attitude (> {lim_rot:.1f})")
-    if pc.get("prior_chi2") and chi2 > pc["prior_chi2"]:
-        reasons.append(f"position and attitude jointly {chi2:.1f} (chi-square > {pc['prior_chi2']:.1f})")
-    return to_pos, limits, reasons
+    return to_pos, dict(g.limits), g.reasons(dxy, dz, drot, chi2)
 
 
 def _solve_pnp(
@@ -146,13 +186,10 @@ def _solve_pnp(
     if out is not None:
         m = np.asarray(out["cam_from_world"].matrix())
         pose = Pose(m[:, :3].copy(), m[:, 3].copy())
-    disagrees = pose is None or (prior is not None and bool(prior_agreement(pose, prior, prior_std, pc)[2]))
-    if prior is not None and pc["prior_gated"] and disagrees:
-
-        def gate(p: Pose) -> bool:
-            return not prior_agreement(p, prior, prior_std, pc)[2]
-
-        gated, _ = prior_gated_pnp(kp, X, camera.K, gate, pc["ransac_px"], seed=int(pc["seed"]))
+    gate = PriorGate(prior, prior_std, pc) if prior is not None else None
+    disagrees = pose is None or (gate is not None and not gate.gate(pose))
+    if gate is not None and pc["prior_gated"] and disagrees:
+        gated, _ = prior_gated_pnp(kp, X, camera.K, gate.gate, pc["ransac_px"], seed=int(pc["seed"]))
         if gated is not None:
             return gated, "prior-gated"
     return pose, "pycolmap"

@@ -28,18 +28,22 @@ def reprojection_errors(pose: Pose, K: np.ndarray, kp: np.ndarray, X: np.ndarray
     return np.where(z > 0, np.linalg.norm(uv - kp, axis=1), np.inf)
 
 
+_IDENTITY = np.eye(3)
+
+
 def _p3p(xn: np.ndarray, X: np.ndarray) -> list[Pose]:
-    """The poses (up to four) of three normalized image points xn (3, 2) and world points X (3, 3)."""
+    """The poses (up to four, finite) of three normalized image points xn (3, 2) and world points X (3, 3)
+    (both float64)."""
     try:
-        n, rvecs, tvecs = cv2.solveP3P(
-            X.astype(np.float64), xn.astype(np.float64), np.eye(3), None, flags=cv2.SOLVEPNP_P3P
-        )
+        n, rvecs, tvecs = cv2.solveP3P(X, xn, _IDENTITY, None, flags=cv2.SOLVEPNP_P3P)
     except cv2.error:
         return []
-    return [
-        Pose(cv2.Rodrigues(r)[0], np.asarray(t, float).ravel())
-        for r, t in zip(rvecs[:n], tvecs[:n], strict=True)
-    ]
+    poses = []
+    for r, t in zip(rvecs[:n], tvecs[:n], strict=True):
+        t = t.ravel()
+        if math.isfinite(t[0]) and math.isfinite(t[1]) and math.isfinite(t[2]):
+            poses.append(Pose(cv2.Rodrigues(r)[0], t))
+    return poses
 
 
 def refine(pose: Pose, K: np.ndarray, kp: np.ndarray, X: np.ndarray, threshold_px: float, rounds: int = 3):
@@ -102,7 +106,7 @@ def prior_gated_pnp(
         trial += 1
         idx = rng.choice(n, 3, replace=False)
         for pose in _p3p(xn[idx], X[idx]):
-            if not np.all(np.isfinite(pose.t)) or not gate(pose):
+            if not gate(pose):
                 continue
             count = int((reprojection_errors(pose, K, kp, X) <= threshold_px).sum())
             if count > best_count:
