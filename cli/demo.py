@@ -202,7 +202,12 @@ def _baselines_process(
         from services.pipeline import Job
 
         t1 = time.perf_counter()
-        sfm = reconstruct_baselines(Job.load(job_dir), found, Path(scene), out.parent, _LogConsole())
+        job, sfm = Job.load(job_dir), {}
+        for label, found_one in found.items():  # the cores the pipeline has left, one baseline at a time
+            if (out / PIPELINE_DONE).exists() and torch.get_num_threads() != (os.cpu_count() or 1):
+                logger.info("the pipeline is done: the baselines take every core")
+                torch.set_num_threads(os.cpu_count() or 1)
+            sfm.update(reconstruct_baselines(job, {label: found_one}, Path(scene), out.parent, _LogConsole()))
         result.update(sfm=sfm, sfm_seconds=time.perf_counter() - t1)
     (out / "baselines.json").write_text(json.dumps(result, default=_plain))
 
@@ -215,6 +220,7 @@ def _plain(o):
 
 
 AERIAL_READY = "aerial-model.ready"  # the parent's word to the child: the job's aerial model is done
+PIPELINE_DONE = "pipeline.done"  # ... and the pipeline is done: the child may use every core
 
 
 def _wait_for(flag: Path, poll_s: float = 1.0) -> bool:
@@ -256,7 +262,7 @@ class BaselinesBeside:
         self.features = self.out_dir / "features" / f"{aliked_features['output']}.h5"
         self.sfm: dict[str, dict] | None = None  # the baselines' reconstructions, when the child made them
         self.sfm_seconds = 0.0
-        for stale in ("baselines.json", "features/shared.done", AERIAL_READY):
+        for stale in ("baselines.json", "features/shared.done", AERIAL_READY, PIPELINE_DONE):
             (self.out_dir / stale).unlink(missing_ok=True)
         job = None if job_dir is None else str(job_dir)
         self.proc = multiprocessing.get_context("spawn").Process(
@@ -271,6 +277,11 @@ class BaselinesBeside:
         if not flag.exists():
             self.out_dir.mkdir(parents=True, exist_ok=True)
             flag.touch()
+
+    def pipeline_done(self) -> None:
+        """Tell the child that the pipeline is done: its reconstructions still to come use every core."""
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        (self.out_dir / PIPELINE_DONE).touch()
 
     def wait(self, timeout: float | None = None) -> tuple[dict[str, tuple], float]:
         """{label: (match file, matching conf)} as direct_baselines returns, and the child's seconds; the
@@ -390,6 +401,7 @@ def run_with_baselines(
             t0 = time.perf_counter()
             with console.status("direct baselines"):
                 if child is not None:
+                    child.pipeline_done()
                     found, timings["baselines_process"] = child.wait()
                 else:
                     pipeline.set_threads(job)

@@ -3,6 +3,7 @@ in-process, a log of their own, and a child that stops when the demo does."""
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -85,11 +86,14 @@ def test_the_child_reconstructs_the_baselines_once_the_aerial_model_is_ready(tin
             time.sleep(0.5)
         time.sleep(3.0)  # its matching is done: it waits for the word, writing no result
         assert child.proc.is_alive() and not (child.out_dir / "baselines.json").exists()
+        child.pipeline_done()  # the reconstructions to come take every core
         child.aerial_model_ready()
         found, _ = child.wait(timeout=600)
     finally:
         child.stop()
     assert child.sfm is not None and set(child.sfm) == set(found) and child.sfm_seconds > 0
+    if (os.cpu_count() or 1) > 1:
+        assert "the baselines take every core" in child.log.read_text()
     here = reconstruct_baselines(job, found, tiny_scene, tmp_path / "here", _LogConsole())
     assert set(here) == set(child.sfm)
     for label, ev in here.items():
