@@ -22,15 +22,15 @@ from services.pipeline.options import JobOptions
 # (median, max over the runs): bench/pipeline_time.py --fit on docs/results/pipeline-time.json
 FIT: dict[str, Any] = {
     "seconds_per_unit": {
-        "aerial_sfm": 4.0577,
-        "train_splat": 0.1028,
-        "plan_views": 0.7664,
-        "render_views": 2.464,
-        "match_views": 6.5585,
-        "reduce": 0.4156,
-        "combined_sfm": 3.4164,
+        "aerial_sfm": 4.4877,
+        "train_splat": 0.1091,
+        "plan_views": 0.427,
+        "render_views": 1.8126,
+        "match_views": 7.5707,
+        "reduce": 0.5298,
+        "combined_sfm": 2.9294,
     },
-    "relative_error": {"median": 0.577, "max": 0.747},
+    "relative_error": {"median": 0.66, "max": 0.87},
     "runs": 4,
 }
 PROFILES_MEASURED = ("cpu",)
