@@ -3,8 +3,8 @@
 The library normalises the dense feature map (B, 128, H, W) with `F.normalize(dim=1)`, a strided
 reduction across channels that takes a third of an extraction on the CPU (0.97 of 3.1 s for a
 1024x768 image, one thread). `FastALIKED` divides by the square root of the channels' summed squares
-instead: the same keypoints and scores, descriptors within float rounding (tests/test_matching_aliked.py),
-about 0.45 s less per image. Everything else is the library's.
+in place instead: the same keypoints and scores, descriptors within float rounding (tests/test_matching.py),
+2.34 s against 3.03 per such image. Everything else is the library's.
 """
 
 from __future__ import annotations

@@ -109,11 +109,10 @@ class PriorGate:
             "vertical_m": max(k * sz, pc["min_height_m"]),
             "rotation_deg": max(k * satt * math.sqrt(3.0), pc["min_rotation_deg"]),
         }
-        self._lim = (self.limits["horizontal_m"], self.limits["vertical_m"], self.limits["rotation_deg"])
         self._chi2_max = pc.get("prior_chi2") or math.inf
 
     def _position(self, pose: Pose) -> tuple[float, float]:
-        d = (-pose.R.T @ pose.t) - self.center
+        d = pose.center - self.center
         return math.sqrt(d[0] * d[0] + d[1] * d[1]), abs(float(d[2]))
 
     def _rotation(self, pose: Pose) -> float:
@@ -128,7 +127,7 @@ class PriorGate:
 
     def gate(self, pose: Pose) -> bool:
         """Whether the pose agrees with the prior (no reason of `reasons`); the position first."""
-        lim_xy, lim_z, lim_rot = self._lim
+        lim_xy, lim_z, lim_rot = self.limits.values()
         dxy, dz = self._position(pose)
         if dxy > lim_xy or dz > lim_z:
             return False
@@ -137,7 +136,7 @@ class PriorGate:
 
     def reasons(self, dxy: float, dz: float, drot: float, chi2: float) -> list[str]:
         """Why differences disagree with the prior (none: they agree)."""
-        lim_xy, lim_z, lim_rot = self._lim
+        lim_xy, lim_z, lim_rot = self.limits.values()
         out = []
         if dxy > lim_xy:
             out.append(f"{dxy:.1f} m from the POS horizontally (> {lim_xy:.1f})")
