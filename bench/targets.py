@@ -34,8 +34,7 @@ from services.geometry import optical_axis  # noqa: E402
 from services.views import GroundTruthRenderer, rendering  # noqa: E402
 from services.views.confs import BASE  # noqa: E402
 from services.views.ground_aware import ground_target  # noqa: E402
-from services.views.rays import depth_at_center, probe_camera  # noqa: E402
-from services.views.scene import Scene, load_scene  # noqa: E402
+from services.views.scene import Scene, depth_at_center, load_scene, probe_camera  # noqa: E402
 
 
 def true_distances(scene: Scene, truth: GroundTruthRenderer, conf: dict) -> dict[str, float | None]:

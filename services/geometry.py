@@ -150,3 +150,10 @@ def lookup_depth(depth: np.ndarray, uv: np.ndarray, interp: str = "bilinear") ->
         raise ValueError(f"unknown depth interpolation {interp!r}")
     out[inside] = d
     return out
+
+
+def horizontal(v: np.ndarray) -> np.ndarray | None:
+    """The unit horizontal direction of v (3,); None when v is (nearly) vertical."""
+    h = np.array([v[0], v[1], 0.0])
+    n = np.linalg.norm(h)
+    return h / n if n > 1e-6 else None

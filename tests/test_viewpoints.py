@@ -477,7 +477,7 @@ def test_paper_views_are_chosen_by_what_they_see_of_the_ground_cameras_surface()
 
 
 def test_a_ground_cameras_target_is_where_the_aerial_cameras_stop_seeing_through():
-    """services.views.rays.carve_ray: the ground camera's own depth probe sees a floater 2 m ahead (a
+    """services.views.scene.carve_ray: the ground camera's own depth probe sees a floater 2 m ahead (a
     CPU-trained 3DGS seen from the street); the aerial cameras' depth sees the street free up to the wall,
     and the target lands on the wall. With carving off (the default) the planner falls back to
     look-ahead."""

@@ -36,10 +36,11 @@ Rendering them (`rendering`): a colour PNG and a z-depth per view from a `Render
 coloured from the full-resolution aerial images through a piecewise-planar proxy of the aerial model
 (`proxy`, `source_colour`), or the ground truth of a synthetic scene for tests and upper bounds).
 
-Modules: `confs`, `rays` (the paper's viewpoint, rays against points and planes, depth probes),
-`scene` (what the planners know), `specs` (`ViewSpec`, candidates, views.json), `paper` and
-`ground_aware` (the planners), `planning` (`main` of plan_views), `rendering` (`main` of render_views),
-`proxy` (the planes of the aerial model), `source_colour` (colour from the aerial images).
+Modules: `confs`, `scene` (what the planners know: the aerial model, the ground POS, and the
+scene's queries with the rays and depth probes they read), `specs` (`ViewSpec`, candidates,
+views.json), `paper` (equations 3-4 and the paper's planner) and `ground_aware` (the planners),
+`planning` (`main` of plan_views), `rendering` (`main` of render_views), `proxy` (the planes of the
+aerial model), `source_colour` (colour from the aerial images).
 """
 
 from services.geometry import angle_deg, look_at, optical_axis, pitch_deg
@@ -51,10 +52,9 @@ from services.views.ground_aware import (
     plan_ground_aware,
     surface_targets,
 )
-from services.views.paper import plan_paper, select_paper
+from services.views.paper import paper_viewpoint, plan_paper, select_paper
 from services.views.planning import NoViews, plan
 from services.views.proxy import PlaneProxy
-from services.views.rays import paper_viewpoint, ray_plane, ray_target_points
 from services.views.rendering import (
     BlockRenderer,
     GroundTruthRenderer,
@@ -65,7 +65,15 @@ from services.views.rendering import (
     make_renderer,
     read_render,
 )
-from services.views.scene import Scene, load_scene, place_ground_on_terrain, scene_terrain_z, terrain_height
+from services.views.scene import (
+    Scene,
+    load_scene,
+    place_ground_on_terrain,
+    ray_plane,
+    ray_target_points,
+    scene_terrain_z,
+    terrain_height,
+)
 from services.views.specs import ViewSpec, cover_aerial, read_views, summary, write_views
 
 __all__ = [

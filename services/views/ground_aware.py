@@ -8,8 +8,7 @@ import logging
 
 import numpy as np
 
-from services.geometry import look_at, optical_axis, pitch_deg, scaled_camera
-from services.views.rays import depth_at, horizontal, unproject
+from services.geometry import horizontal, look_at, optical_axis, pitch_deg, scaled_camera
 from services.views.scene import Scene
 from services.views.specs import ViewSpec, aerial_candidates, assign_candidates, stem
 
@@ -34,24 +33,12 @@ def ground_target(g: str, scene: Scene, conf: dict) -> tuple[np.ndarray, str]:
 
 
 def surface_targets(g: str, scene: Scene, conf: dict) -> list[np.ndarray]:
-    """Points of what ground camera g sees (its depth probe at a grid of image positions, within
-    [min_target_m, max_target_m]), the nearest its principal point first: other targets for its views
-    when every line of sight to the one on its principal ray is blocked. [] without a depth probe."""
+    """Points of what ground camera g sees within [min_target_m, max_target_m] (Scene.seen_points), the
+    nearest its principal point first: other targets for its views when every line of sight to the one
+    on its principal ray is blocked. [] without a depth probe."""
     gc = conf["ground"]
     cam, pose = scene.ground_cameras[g], scene.ground_poses[g]
-    probe = scene.depth_probe(cam, pose, conf["target"]["probe_width"])
-    if probe is None:
-        return []
-    pc, d = probe
-    found = []
-    for fy in (0.35, 0.5, 0.65):
-        for fx in (0.15, 0.3, 0.5, 0.7, 0.85):
-            u, v = int(fx * pc.width), int(fy * pc.height)
-            z = depth_at(d, u, v, 5, min_valid_div=2)
-            if z is not None and gc["min_target_m"] <= z <= gc["max_target_m"]:
-                X = unproject(pc.K, pose, np.array([u]), np.array([v]), np.array([z]))[0]
-                found.append((float(np.hypot(fx - 0.5, fy - 0.5)), X))
-    return [X for _, X in sorted(found, key=lambda fX: fX[0])]
+    return scene.seen_points(cam, pose, conf["target"]["probe_width"], gc["min_target_m"], gc["max_target_m"])
 
 
 def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:

@@ -5,16 +5,50 @@ ground image (covisibility through the depth probe, else heading and distance)."
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 
-from services.colmap_model import Camera
-from services.geometry import angle_deg, pitch_deg, scaled_camera
-from services.views.rays import horizontal, paper_viewpoint
+from services.colmap_model import Camera, Pose
+from services.geometry import angle_deg, horizontal, pitch_deg, rot_x, scaled_camera
 from services.views.scene import Scene
 from services.views.specs import ViewSpec, assign_candidates, sees, stem
 
 logger = logging.getLogger("midview.viewpoints")
+
+
+def paper_viewpoint(pose_a: Pose, target: np.ndarray, fraction: float = 0.5) -> tuple[Pose, float]:
+    """Equations 3-4: the aerial camera lowered vertically to `fraction` of its height above the target
+    and turned about its own x axis until the target is on its principal ray again.
+
+    Returns the new pose and beta (degrees, >= 0), the angle between C_a->T and C_r->T. The rotation is
+    R_world_from_cam_r = R_world_from_cam_a @ Rx(theta) with theta = atan2(-d_y, d_z), d the direction
+    C_r->T in the old camera frame; for a camera whose x axis is level, d lies in its y-z plane and
+    |theta| = beta. Otherwise (a rolled camera) the remaining small rotation that puts T exactly on the
+    principal ray is applied too.
+    """
+    target = np.asarray(target, float)
+    C_a = pose_a.center
+    C_r = np.array([C_a[0], C_a[1], target[2] + fraction * (C_a[2] - target[2])])
+    d = target - C_r
+    if np.linalg.norm(d) < 1e-9:
+        raise ValueError("the lowered camera coincides with its target")
+    Rwc = pose_a.R.T
+    d_c = Rwc.T @ (d / np.linalg.norm(d))  # direction to T in the old camera frame
+    theta = math.atan2(-d_c[1], d_c[2])
+    Rwc_r = Rwc @ rot_x(theta)
+    # residual (zero for a camera with a level x axis): rotate the axis onto d exactly
+    z_now = Rwc_r[:, 2]
+    z_goal = d / np.linalg.norm(d)
+    axis = np.cross(z_now, z_goal)
+    s, c = float(np.linalg.norm(axis)), float(z_now @ z_goal)
+    if s > 1e-12:
+        k = axis / s
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        ang = math.atan2(s, c)
+        Rwc_r = (np.eye(3) + math.sin(ang) * K + (1 - math.cos(ang)) * K @ K) @ Rwc_r
+    beta = angle_deg(target - C_a, target - C_r)
+    return Pose.from_center(Rwc_r, C_r), beta
 
 
 def plan_paper(scene: Scene, conf: dict) -> list[ViewSpec]:

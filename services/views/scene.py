@@ -1,6 +1,11 @@
 """What the view planners know of the scene: the aerial model's cameras, poses and points, the ground
 cameras' POS poses in its frame (heights fused with the terrain under them), and an optional depth
-probe (a renderer of the aerial 3DGS) for targets, occlusion and covisibility."""
+probe (a renderer of the aerial 3DGS) for targets, occlusion and covisibility; with the read-outs of
+rays and depth maps those queries rest on (a ray against the sparse points or a plane, a probe's depth
+at a pixel, pixels back to world points, free space carved by the aerial cameras' depth).
+
+The planners (`paper`, `ground_aware`) ask the scene, never its read-outs: the calls run one way,
+planner -> scene -> read-outs."""
 
 from __future__ import annotations
 
@@ -17,14 +22,6 @@ from services.geometry import look_at, optical_axis, pos_in_frame
 from services.pos import LocalFrame, PosRecord, read_pos
 from services.sfm import read_georef_frame
 from services.views.confs import BASE
-from services.views.rays import (
-    carve_ray,
-    depth_at_center,
-    probe_camera,
-    ray_plane,
-    ray_target_points,
-    unproject,
-)
 
 logger = logging.getLogger("midview.viewpoints")
 
@@ -86,7 +83,7 @@ class Scene:
     def carved_target(
         self, camera: Camera, pose: Pose, cc: dict, min_dist: float, max_dist: float
     ) -> np.ndarray | None:
-        """Where the principal ray leaves the free space the aerial cameras' depth carves (rays.carve_ray,
+        """Where the principal ray leaves the free space the aerial cameras' depth carves (carve_ray,
         by the planners' `target.carve` conf `cc`); None without a depth probe or where it meets nothing."""
         maps = self.aerial_depth_maps(int(cc["width"])) if cc["enabled"] else []
         if not maps:
@@ -132,6 +129,26 @@ class Scene:
         pc, d = probe
         v, u = np.nonzero(np.isfinite(d) & (d > 0) & (d <= max_dist))
         return unproject(pc.K, pose, u, v, d[v, u])
+
+    def seen_points(
+        self, camera: Camera, pose: Pose, width: int, min_dist: float, max_dist: float
+    ) -> list[np.ndarray]:
+        """World points (3,) the camera's depth probe (`width` pixels wide) sees within [min_dist,
+        max_dist] at a grid of 15 image positions, the nearest the principal point first; [] without a
+        depth probe."""
+        probe = self.depth_probe(camera, pose, width)
+        if probe is None:
+            return []
+        pc, d = probe
+        found = []
+        for fy in (0.35, 0.5, 0.65):
+            for fx in (0.15, 0.3, 0.5, 0.7, 0.85):
+                u, v = int(fx * pc.width), int(fy * pc.height)
+                z = depth_at(d, u, v, 5, min_valid_div=2)
+                if z is not None and min_dist <= z <= max_dist:
+                    X = unproject(pc.K, pose, np.array([u]), np.array([v]), np.array([z]))[0]
+                    found.append((float(np.hypot(fx - 0.5, fy - 0.5)), X))
+        return [X for _, X in sorted(found, key=lambda fX: fX[0])]
 
     def visible_points(
         self, camera: Camera, pose: Pose, width: int, max_dist: float, cell: int = 4
@@ -295,3 +312,101 @@ def place_ground_on_terrain(scene: Scene, gc: dict) -> dict[str, dict]:
         )
     scene.ground_heights = out
     return out
+
+
+# The read-outs of rays and depth maps the scene's queries rest on
+
+
+def ray_target_points(
+    center: np.ndarray,
+    direction: np.ndarray,
+    points: np.ndarray,
+    cone_deg: float = 1.5,
+    min_points: int = 3,
+    quantile: float = 0.25,
+    min_dist: float = 0.0,
+    max_dist: float = np.inf,
+) -> float | None:
+    """Distance along a ray to the first surface, from the sparse points within `cone_deg` of it
+    (a low quantile of their distances: points behind the surface are seen from other cameras)."""
+    if points is None or len(points) == 0:
+        return None
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    v = np.asarray(points, float) - np.asarray(center, float)[None]
+    t = v @ d
+    r = np.linalg.norm(v - t[:, None] * d[None], axis=1)
+    on = (t > max(min_dist, 1e-6)) & (t <= max_dist) & (r <= np.tan(np.radians(cone_deg)) * t)
+    if on.sum() < min_points:
+        return None
+    return float(np.quantile(t[on], quantile))
+
+
+def ray_plane(center: np.ndarray, direction: np.ndarray, z: float) -> float | None:
+    """Distance along a ray to the horizontal plane at height z (None if it does not meet it ahead)."""
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    if abs(d[2]) < 1e-9:
+        return None
+    t = (z - center[2]) / d[2]
+    return float(t) if t > 0 else None
+
+
+def probe_camera(camera: Camera, width: int) -> Camera:
+    """The camera scaled to `width` pixels (same field of view), for cheap depth probes."""
+    s = min(1.0, width / camera.width)
+    w, h = max(8, round(camera.width * s)), max(6, round(camera.height * s))
+    K = camera.K
+    sx, sy = w / camera.width, h / camera.height
+    return Camera("PINHOLE", w, h, [K[0, 0] * sx, K[1, 1] * sy, K[0, 2] * sx, K[1, 2] * sy])
+
+
+def depth_at(depth: np.ndarray, u: int, v: int, window: int = 5, min_valid_div: int = 3) -> float | None:
+    """Median valid depth in a `window` x `window` patch around pixel (u, v); None when fewer than
+    1/min_valid_div of the patch is valid."""
+    r = max(0, window // 2)
+    patch = depth[max(0, v - r) : v + r + 1, max(0, u - r) : u + r + 1]
+    good = patch[np.isfinite(patch) & (patch > 0)]
+    return float(np.median(good)) if good.size >= max(1, patch.size // min_valid_div) else None
+
+
+def depth_at_center(depth: np.ndarray, window: int = 5) -> float | None:
+    """Median valid depth in a window around the image centre (the principal point, for centred K)."""
+    h, w = depth.shape
+    return depth_at(depth, w // 2, h // 2, window)
+
+
+def unproject(K: np.ndarray, pose: Pose, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """(N, 3) world points at z-depths `z` behind pixels (u, v) (their centres) of a camera (K, pose)."""
+    x_cam = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
+    return (x_cam - pose.t[None]) @ pose.R  # R^T (x - t)
+
+
+def carve_ray(
+    center: np.ndarray,
+    direction: np.ndarray,
+    depth_maps: list[tuple[np.ndarray, Pose, np.ndarray]],
+    t_min: float,
+    t_max: float,
+    step: float,
+    margin: float,
+    free_fraction: float,
+    min_views: int,
+) -> float | None:
+    """The first distance along the ray (center + t direction, t in [t_min, t_max) by `step`) where the
+    scene is no longer free space: fewer than `free_fraction` of the depth maps [(K, cam_from_world pose,
+    z-depth (H, W), 0 where nothing)] that see the point (at least `min_views`) see `margin` beyond it.
+    The maps are the aerial cameras' renders, where a 3DGS trained on them is at its best; a ray from a
+    ground camera meets the facade it looks at where they stop seeing through. None: it meets nothing."""
+    ts = np.arange(t_min, t_max, step)
+    P = center[None] + ts[:, None] * direction[None]
+    n_view, n_free = np.zeros(len(ts)), np.zeros(len(ts))
+    for K, pose, D in depth_maps:
+        uv, z = pose.project(K, P)
+        u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        ok = (z > 1e-6) & (u >= 0) & (v >= 0) & (u < D.shape[1]) & (v < D.shape[0])
+        dd = np.zeros(len(ts))
+        dd[ok] = D[v[ok], u[ok]]
+        seen = ok & (dd > 0)
+        n_view += seen
+        n_free += seen & (z < dd - margin)
+    hit = np.flatnonzero((n_view >= min_views) & (n_free < free_fraction * n_view))
+    return float(ts[hit[0]]) if len(hit) else None
