@@ -188,9 +188,12 @@ def test_the_reducer_counts_the_pnp_inliers_on_trusted_rendered_depth(tiny_job, 
     poses = json.loads((job.dir("transfer") / "ground_poses.json").read_text())["images"]
     accepted = {g: r for g, r in poses.items() if r["accepted"]}
     assert accepted
+    views = {v["name"] for v in json.loads((job.dir("views") / "views.json").read_text())["views"]}
     for r in accepted.values():
         assert 0 < r["trusted_depth_inliers"] <= r["num_inliers"]
         assert rests_on_trusted_depth(r, conf)
+        # and which rendered views its inliers came through, each inlier once
+        assert set(r["inlier_views"]) <= views and sum(r["inlier_views"].values()) == r["num_inliers"]
     # a pose counts when at least half of its inliers (seed_min_trusted_ratio) are on trusted depth
     assert rests_on_trusted_depth({"num_inliers": 40, "trusted_depth_inliers": 20}, conf)
     assert not rests_on_trusted_depth({"num_inliers": 40, "trusted_depth_inliers": 19}, conf)

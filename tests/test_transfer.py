@@ -201,8 +201,31 @@ def test_pnp_verification_rejects_wrong_matches_and_localizes_the_ground_camera(
     # the POS of the ground camera: 2 m and 2 degrees off
     R_noise = ypr_to_matrix(2.0, 0.0, 0.0) @ ypr_to_matrix(0.0, 0.0, 0.0).T
     prior = Pose.from_center(R_noise @ ground_pose.R.T, ground_pose.center + [1.5, -1.2, 0.5])
-    pairs, _, poses, stats = transfer.reduce_views(
+    # one view's matches alone are not enough by default (pnp.min_other_view_inliers): neither a pose nor
+    # a consensus that verifies matches; the pose still says which view its inliers came through
+    pairs, _, poses, _ = transfer.reduce_views(
         [v], {A: aerial_cam}, {A: aerial_pose}, CAM, {G: prior}, {G: (2.5, 4.0, 2.0)}
+    )
+    assert not poses[G]["accepted"] and not poses[G]["consensus"]
+    assert "one view's matches alone" in poses[G]["reason"]
+    assert poses[G]["inlier_views"] == {"V1": poses[G]["num_inliers"]} and poses[G]["num_inliers"] >= 40
+    assert pairs[(A, G)]["inliers"].sum() == 0
+    # the same matches through two views (the render split in two) make a pose
+    halves = {"V1": [r for r in rows if r[0] % 2 == 0], "V2": [r for r in rows if r[0] % 2 == 1]}
+    two = [
+        view(name, [lambda r, h=h: pair(r, A, h), lambda r, h=h: pair(r, G, h)], n_render=n, depth=depth,
+             pose=render_pose, kps={**kps, f"views/{name}.png": kp_r})
+        for name, h in halves.items()
+    ]  # fmt: skip
+    _, _, poses, _ = transfer.reduce_views(
+        two, {A: aerial_cam}, {A: aerial_pose}, CAM, {G: prior}, {G: (2.5, 4.0, 2.0)}
+    )
+    assert poses[G]["accepted"], poses[G]["reason"]
+    assert set(poses[G]["inlier_views"]) == {"V1", "V2"}
+    # the checks below are those of one view's pose: the rule above off
+    one_view = {"pnp": {"min_other_view_inliers": 0}}
+    pairs, _, poses, stats = transfer.reduce_views(
+        [v], {A: aerial_cam}, {A: aerial_pose}, CAM, {G: prior}, {G: (2.5, 4.0, 2.0)}, one_view
     )
     p = pairs[(A, G)]
     kept = set(p["matches"][p["inliers"], 1].tolist())
@@ -216,7 +239,7 @@ def test_pnp_verification_rejects_wrong_matches_and_localizes_the_ground_camera(
     # agree on one camera are still verified by it (verify_on_consensus), the wrong ones are not
     far = Pose.from_center(ground_pose.R.T, ground_pose.center + [30.0, 0, 0])
     pairs, _, poses, _ = transfer.reduce_views(
-        [v], {A: aerial_cam}, {A: aerial_pose}, CAM, {G: far}, {G: (2.5, 4.0, 2.0)}
+        [v], {A: aerial_cam}, {A: aerial_pose}, CAM, {G: far}, {G: (2.5, 4.0, 2.0)}, one_view
     )
     assert not poses[G]["accepted"] and "POS" in poses[G]["reason"] and poses[G]["consensus"]
     p = pairs[(A, G)]
@@ -225,7 +248,7 @@ def test_pnp_verification_rejects_wrong_matches_and_localizes_the_ground_camera(
     # without that, no match of a ground image without an accepted pose is kept
     pairs, _, poses, _ = transfer.reduce_views(
         [v], {A: aerial_cam}, {A: aerial_pose}, CAM, {G: far}, {G: (2.5, 4.0, 2.0)},
-        {"pnp": {"verify_on_consensus": False}},
+        {"pnp": {"verify_on_consensus": False, "min_other_view_inliers": 0}},
     )  # fmt: skip
     assert pairs[(A, G)]["inliers"].sum() == 0
 

@@ -44,6 +44,7 @@ class PoseEstimate:
     to_pos: dict[str, float] | None = None
     limits: dict[str, float] | None = None
     trusted_depth_inliers: int | None = None
+    inlier_views: dict[str, int] | None = None  # the inliers by the rendered view they came through
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -76,7 +77,8 @@ class PoseEstimate:
                 inlier_ratio=self.inlier_ratio,
                 consensus=self.consensus,
             )
-        for k in ("position_std_m", "inlier_spread", "to_pos", "limits", "trusted_depth_inliers"):
+        optional = ("position_std_m", "inlier_spread", "to_pos", "limits")
+        for k in (*optional, "trusted_depth_inliers", "inlier_views"):
             if getattr(self, k) is not None:
                 d[k] = getattr(self, k)
         return {**d, **self.extra}
@@ -194,12 +196,26 @@ def _solve_pnp(
     return pose, "pycolmap"
 
 
-def _inlier_checks(est: PoseEstimate, kp: np.ndarray, X: np.ndarray, camera: Camera, pc: dict) -> list[str]:
+def _inlier_checks(
+    est: PoseEstimate, kp: np.ndarray, X: np.ndarray, camera: Camera, pc: dict, views: np.ndarray | None
+) -> list[str]:
     """Why the inliers of est do not make an accepted pose (none: they do): how well they pin the camera
-    centre, how much of the image they cover, how many there are and their ratio. Sets est's
-    position_std_m, inlier_spread and consensus."""
+    centre, how much of the image they cover, how many there are and their ratio, and (with `views`, the
+    rendered view each correspondence came through) whether views other than the largest confirm them.
+    Sets est's position_std_m, inlier_spread, inlier_views and consensus."""
     inl = est.inliers
     reasons = []
+    confirmed = True
+    if views is not None:
+        names, counts = np.unique(views[inl], return_counts=True)
+        est.inlier_views = {str(n): int(c) for n, c in zip(names, counts, strict=True)}
+        others = int(inl.sum()) - (int(counts.max()) if len(counts) else 0)
+        confirmed = others >= pc["min_other_view_inliers"]
+        if not confirmed:
+            reasons.append(
+                f"{others} inliers through views other than the largest (< {pc['min_other_view_inliers']}):"
+                " one view's matches alone"
+            )
     if inl.sum() >= 3:  # pixel noise: their RMS residual, at least 1 px
         std = fit_position_std(est.pose, camera.K, kp[inl], X[inl])
         est.position_std_m = std
@@ -223,7 +239,7 @@ def _inlier_checks(est: PoseEstimate, kp: np.ndarray, X: np.ndarray, camera: Cam
         reasons.append(f"inlier ratio {inl.mean():.2f} (< {pc['min_inlier_ratio']})")
     # enough correspondences agree on one camera: they verify the matches even where the pose itself is
     # ill-determined (clustered or planar points) and fails the spread check above or the POS checks
-    est.consensus = bool(n >= pc["min_inliers"] and inl.mean() >= pc["min_inlier_ratio"])
+    est.consensus = bool(n >= pc["min_inliers"] and inl.mean() >= pc["min_inlier_ratio"] and confirmed)
     return reasons
 
 
@@ -234,8 +250,10 @@ def estimate_ground_pose(
     prior: Pose | None,
     prior_std: PosStd | None,
     conf: dict,
+    views: np.ndarray | None = None,
 ) -> PoseEstimate:
-    """PnP LO-RANSAC of one ground image (keypoints kp (n, 2), points X (n, 3)) with its POS as a prior."""
+    """PnP LO-RANSAC of one ground image (keypoints kp (n, 2), points X (n, 3)) with its POS as a prior;
+    `views` (n,): the name of the rendered view each correspondence came through (None: direct matches)."""
     pc = conf["pnp"]
     est = PoseEstimate(num_correspondences=int(len(kp)))
     if len(kp) < max(pc["min_inliers"], 4):
@@ -248,7 +266,7 @@ def estimate_ground_pose(
     est.pose, est.solver = pose, solver
     est.errors = reprojection_errors(pose, camera.K, kp, X)
     est.inliers = est.errors <= pc["keep_px"]
-    reasons = _inlier_checks(est, kp, X, camera, pc)
+    reasons = _inlier_checks(est, kp, X, camera, pc, views)
     if prior is not None:
         est.to_pos, est.limits, prior_reasons = prior_agreement(pose, prior, prior_std, pc)
         reasons += prior_reasons
@@ -291,14 +309,16 @@ def ground_priors(
 
 def _correspondences(
     g: str, merged: Pairs, og: dict[str, np.ndarray], depth_points: bool | str, trusted_views: list[int]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ground keypoint indices, 3D points, whether from a trusted view's rendered depth) of ground image
-    g: its merged links' points and, with depth_points, its render matches lifted by the rendered depth
-    (only the trusted views' with "trusted"); one point per ground keypoint, the best-scored."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(ground keypoint indices, 3D points, whether from a trusted view's rendered depth, the view each
+    came through) of ground image g: its merged links' points and, with depth_points, its render matches
+    lifted by the rendered depth (only the trusted views' with "trusted"); one point per ground keypoint,
+    the best-scored."""
     keys = [k for k in merged if k[1] == g]
     ig = np.concatenate([merged[k]["ig"] for k in keys]) if keys else np.zeros(0, np.int64)
     X = np.concatenate([merged[k]["X"] for k in keys]) if keys else np.zeros((0, 3))
     sc = np.concatenate([merged[k]["score"] for k in keys]) if keys else np.zeros(0, np.float32)
+    view = np.concatenate([merged[k]["view"] for k in keys]) if keys else np.zeros(0, np.int64)
     from_depth = np.zeros(len(ig), bool)
     if depth_points:
         has_x = np.isfinite(og["X"]).all(1)
@@ -308,12 +328,13 @@ def _correspondences(
         ig = np.concatenate([ig, og["i"][has_x]])
         X = np.concatenate([X, og["X"][has_x]])
         sc = np.concatenate([sc, og["score"][has_x]])
+        view = np.concatenate([view, og["view"][has_x]])
         from_depth = np.concatenate([from_depth, trusted[has_x]])
     order = np.lexsort((-sc.astype(np.float64), ig))
     first = np.ones(len(order), bool)
     first[1:] = ig[order][1:] != ig[order][:-1]
     sel = order[first]
-    return ig[sel], X[sel], from_depth[sel]
+    return ig[sel], X[sel], from_depth[sel], view[sel]
 
 
 def localize_grounds(
@@ -336,9 +357,10 @@ def localize_grounds(
     poses: dict[str, PoseEstimate] = {}
     verified: dict[tuple[str, str], np.ndarray] = {}
     for g in sorted(n for n in obs if image_set(n) == "ground"):
-        ig, X, from_depth = _correspondences(g, merged, obs[g], pc["depth_points"], trusted)
+        ig, X, from_depth, view = _correspondences(g, merged, obs[g], pc["depth_points"], trusted)
         kp = keypoints[g][ig].astype(np.float64)
-        est = estimate_ground_pose(kp, X, ground_camera, priors.get(g), prior_std.get(g), conf)
+        names = np.array(view_names, dtype=object)[view] if len(view) else np.zeros(0, object)
+        est = estimate_ground_pose(kp, X, ground_camera, priors.get(g), prior_std.get(g), conf, names)
         if est.inliers is not None:  # inliers whose 3D point is the rendered depth of a view trusted for it
             est.trusted_depth_inliers = int((from_depth & est.inliers).sum())
         poses[g] = est
