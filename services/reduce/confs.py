@@ -42,10 +42,12 @@ default_conf: dict[str, Any] = {
         # blurry render; with 12 inliers a fresh demo accepted a pose 2.2 m off at a 0.10 m std (the nine
         # poses accepted with perfect views have 30 or more)
         "min_pose_inliers": 20,
-        # inliers through rendered views other than the one holding most, for a pose and a consensus: one
-        # view's matches alone can be a repeated facade shifted by a window period, all agreeing on a
-        # wrong camera (isprs-walk: a pose 4.0 m off on 24 inliers of one view, std 0.17 m); 4 = a P3P
-        # sample and one point to check it (direct matches, without views, are not counted)
+        # inliers through rendered views other than the one holding most, for an accepted pose: one view's
+        # matches alone can be a repeated facade shifted by a window period, all agreeing on a wrong camera
+        # (isprs-walk: a pose 4.0 m off on 24 inliers of one view, std 0.17 m), and an accepted pose seeds
+        # the combined SfM and anchors its ground pairs' surface check; 4 = a P3P sample and one point to
+        # check it. Such a consensus still verifies its matches (verify_on_consensus). Direct matches,
+        # without views, are not counted
         "min_other_view_inliers": 4,
         "min_inlier_ratio": 0.15,
         "prior_sigmas": 3.0,  # the pose must lie within this many POS standard deviations ...

@@ -205,13 +205,11 @@ def _inlier_checks(
     Sets est's position_std_m, inlier_spread, inlier_views and consensus."""
     inl = est.inliers
     reasons = []
-    confirmed = True
     if views is not None:
         names, counts = np.unique(views[inl], return_counts=True)
         est.inlier_views = {str(n): int(c) for n, c in zip(names, counts, strict=True)}
         others = int(inl.sum()) - (int(counts.max()) if len(counts) else 0)
-        confirmed = others >= pc["min_other_view_inliers"]
-        if not confirmed:
+        if others < pc["min_other_view_inliers"]:
             reasons.append(
                 f"{others} inliers through views other than the largest (< {pc['min_other_view_inliers']}):"
                 " one view's matches alone"
@@ -239,7 +237,7 @@ def _inlier_checks(
         reasons.append(f"inlier ratio {inl.mean():.2f} (< {pc['min_inlier_ratio']})")
     # enough correspondences agree on one camera: they verify the matches even where the pose itself is
     # ill-determined (clustered or planar points) and fails the spread check above or the POS checks
-    est.consensus = bool(n >= pc["min_inliers"] and inl.mean() >= pc["min_inlier_ratio"] and confirmed)
+    est.consensus = bool(n >= pc["min_inliers"] and inl.mean() >= pc["min_inlier_ratio"])
     return reasons
 
 
