@@ -26,8 +26,8 @@ ENU frame) and written to out/sparse with report.json (NRI per set, N3P, reproje
 camera positions against the PnP and POS).
 
 Modules: `database` (the combined database), `model` (the input model), `mapping` (the mapper, the
-dropped and added ground images), `refine` (the last adjustment), `report`, `confs`; `main` runs them
-as named steps.
+dropped and added ground images), `refine` (the last adjustment), `blocks` (chains of ground images the
+mapper left out, placed together on their ties), `report`, `confs`; `main` runs them as named steps.
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ from services.colmap_model import Camera, read_cameras_json
 from services.conf import merge_conf
 from services.pos import DEFAULT_STD_XY
 from services.sfm.aerial import colmap_log_level
+from services.sfm.combined.blocks import place_blocks
 from services.sfm.combined.confs import default_conf
 from services.sfm.combined.database import (
     CombinedDatabase,
@@ -168,6 +169,7 @@ def main(
         timings["mapping"] = time.perf_counter() - t0
         limits = conf["pos_limits"] or reduce_conf["pnp"]
         dropped, added, refined = settle_ground(rec, seed, cdb, pnp, limits, conf)
+        blocks = place_blocks(rec, cdb, image_dir, out_dir / "blocks", conf, limits)
 
     with stage("combined:georef", logger):
         frame, geo_summary = georeference(rec, aerial_dir, pos, conf)
@@ -177,7 +179,7 @@ def main(
     fixed, min_pair = conf["mapping"]["fix_aerial"], int(conf["mapping"]["min_num_matches"])
     report = build_report(
         rec, cdb.ids, cdb.priors, pnp, seed, geo_summary, timings, t_all, added, dropped, fixed,
-        cdb.pair_sizes, min_pair, refined, cdb.ground_pairs,
+        cdb.pair_sizes, min_pair, refined, cdb.ground_pairs, [b.to_dict() for b in blocks],
     )  # fmt: skip
     report["ground_pairs"] = cdb.ground_pairs
     report["colmap_warnings"] = warnings  # the solver's warnings, counted (not printed line by line)

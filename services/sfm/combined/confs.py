@@ -74,6 +74,18 @@ default_conf: dict[str, Any] = {
         "min_shared_observations": 15,
         "max_iterations": 100,
     },
+    # chains of ground images the mapper left out, each reconstructed on its own and placed by a
+    # similarity on its ties to the aerial points (services.sfm.combined.blocks)
+    "blocks": {
+        "enabled": True,
+        "min_images": 3,  # a chain of fewer unregistered ground images is left to the single-image paths
+        "tie_max_m": 0.5,  # a tie agrees with the similarity within this (model metres)
+        "min_ties": 20,  # agreeing ties of a placed block ...
+        # ... through at least this many of its images: one image's matches alone can all be a repeated
+        # facade shifted by a window (services.reduce's pnp.min_other_view_inliers, for one image)
+        "min_tie_images": 2,
+        "seed": 0,
+    },
     "georef": True,
     # GeoPackage/GeoJSON cameras, omega/phi/kappa text and LAS points in out_dir/gis (services.sfm.gis)
     "gis": True,

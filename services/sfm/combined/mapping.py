@@ -83,10 +83,11 @@ def drop_ill_determined(
     return out
 
 
-def _register_at_pnp(
-    rec: pycolmap.Reconstruction, todo: list[str], db_path: Path, ids: dict[str, int], pnp: dict[str, dict]
+def _register_at(
+    rec: pycolmap.Reconstruction, todo: list[str], db_path: Path, ids: dict[str, int], poses: dict[str, dict]
 ) -> dict[str, np.ndarray]:
-    """Register the ground images `todo` in `rec` at their PnP pose; their keypoints (N, 2) by name."""
+    """Register the ground images `todo` in `rec` at their pose (a record R, t: the reducer's PnP pose, a
+    block's); their keypoints (N, 2) by name."""
     db = pycolmap.Database.open(str(db_path))
     try:
         db_images = {n: db.read_image(ids[n]) for n in todo}
@@ -98,7 +99,7 @@ def _register_at_pnp(
         dbim = db_images[g]
         if dbim.camera_id not in rec.cameras:
             rec.add_camera_with_trivial_rig(cams[dbim.camera_id])
-        r = pnp[g]
+        r = poses[g]
         pose = pose_of_record(r)
         if ids[g] in rec.images:  # unregistered in the model (the input model: the mapper made none)
             frame_id = rec.images[ids[g]].frame_id
@@ -120,14 +121,29 @@ def add_pnp_images(
     conf: dict,
 ) -> list[str]:
     """Add to `rec` the ground images whose PnP pose the reducer accepted but the mapper did not
-    register, at that pose; each observes the model's 3D points that its transferred matches reach
-    (the aerial keypoint's point, reprojecting within `add_max_px`), or new two-view points where the
-    aerial keypoint has none. Returns the names added."""
+    register, at that pose (add_at_poses). Returns the names added."""
     registered = {im.name for im in rec.images.values() if im.has_pose}
-    todo = [g for g, r in sorted(pnp.items()) if r.get("accepted") and g in ids and g not in registered]
+    todo = {g: r for g, r in sorted(pnp.items()) if r.get("accepted") and g in ids and g not in registered}
+    return add_at_poses(rec, todo, db_path, ids, offsets, ag, conf)
+
+
+def add_at_poses(
+    rec: pycolmap.Reconstruction,
+    poses: dict[str, dict],
+    db_path: Path,
+    ids: dict[str, int],
+    offsets: dict[str, int],
+    ag: list[tuple[str, str, np.ndarray]],
+    conf: dict,
+) -> list[str]:
+    """Register the ground images of `poses` ({name: cam_from_world record R, t}) in `rec` at those
+    poses; each observes the model's 3D points that its transferred matches reach (the aerial keypoint's
+    point, reprojecting within `add_max_px`), or new two-view points where the aerial keypoint has none.
+    Returns the names added."""
+    todo = sorted(poses)
     if not todo:
         return []
-    kps = _register_at_pnp(rec, todo, db_path, ids, pnp)
+    kps = _register_at(rec, todo, db_path, ids, poses)
     aerial_p3d: dict[str, dict[int, int]] = {}  # aerial name -> keypoint -> point3D id
     for im in rec.images.values():
         if im.name in offsets and im.has_pose:

@@ -37,14 +37,18 @@ def _chained_ground(rec: pycolmap.Reconstruction, min_shared: int) -> dict[int, 
     return {i: rec.images[i].name for i, n in shared.items() if n >= min_shared and rec.images[i].has_pose}
 
 
-def refine_ground(rec: pycolmap.Reconstruction, conf: dict) -> dict[str, float]:
+def refine_ground(
+    rec: pycolmap.Reconstruction, conf: dict, among: set[str] | None = None
+) -> dict[str, float]:
     """Bundle-adjust `rec` in place with its aerial frames, intrinsics and the ground images that share
     fewer than min_shared_observations points with other ground images held (a lone image's PnP pose
     rests on the same transferred matches, chosen by RANSAC; freed, its 2-view aerial-ground points let
-    it slide: on `small` one moved from 0.03 to 0.37 m off); the rest of the ground images and every
-    3D point free.
+    it slide: on `small` one moved from 0.03 to 0.37 m off), and, with `among`, every ground image not
+    named there; the rest of the ground images and every 3D point free.
     Returns {ground image name: how far its camera centre moved (m)}."""
     free = _chained_ground(rec, int(conf["min_shared_observations"]))
+    if among is not None:
+        free = {i: n for i, n in free.items() if n in among}
     if not free:
         return {}
     before = {i: np.asarray(rec.images[i].projection_center()) for i in free}

@@ -55,7 +55,7 @@ def cause_of(g: str, entry: dict, pnp: dict, partners: list[str], registered: se
 def _ground_entry(
     g: str,
     reg: dict[str, pycolmap.Image],
-    by_pnp: set[str],
+    how: dict[str, str],
     priors: dict[str, Pose],
     pnp: dict[str, dict],
     dropped: dict[str, str],
@@ -64,11 +64,13 @@ def _ground_entry(
     refined_m: float | None = None,
 ) -> dict[str, Any]:
     """One ground image in the report: how it was registered and where (against its POS and PnP pose),
-    or why it was not (`largest`: its largest verified pair; None: unknown)."""
+    or why it was not (`how`: "pnp" or "block" by name, else the mapper; `largest`: its largest verified
+    pair; None: unknown)."""
     d: dict[str, Any] = {"registered": g in reg}
     if g in reg:
-        # "pnp": from the reducer's PnP pose (seeded, kept fixed by the mapper, or added after it)
-        d["registered_by"] = "pnp" if g in by_pnp else "mapper"
+        # "pnp": from the reducer's PnP pose (seeded, kept fixed by the mapper, or added after it); "block":
+        # with its chain, placed on the chain's ties (services.sfm.combined.blocks)
+        d["registered_by"] = how.get(g, "mapper")
         if refined_m is not None:  # how far the last adjustment moved it (services.sfm.combined.refine)
             d["refined_m"] = refined_m
         d["observations"] = int(reg[g].num_points3D)
@@ -112,12 +114,15 @@ def build_report(
     min_pair_matches: int = 15,
     refined: dict[str, float] | None = None,
     ground_pairs: dict[str, dict] | None = None,
+    blocks: list[dict] | None = None,
 ) -> dict:
     """report.json of the combined model (see the module docstring); each ground image left out with its
-    named cause (cause_of; `ground_pairs`: the verified ground-ground pairs' records by "g0 g1")."""
+    named cause (cause_of; `ground_pairs`: the verified ground-ground pairs' records by "g0 g1"; `blocks`:
+    Block.to_dict() of the chains placed as blocks)."""
     reg = {im.name: im for im in rec.images.values() if im.has_pose}
     # held at the PnP pose: added after the mapper, or seeded (unless the mapper's BA refined them)
     by_pnp = set(added or []) | (registered_ground(seed) if conf_fixed else set())
+    how = {**{g: "pnp" for g in by_pnp}, **{g: "block" for b in blocks or [] for g in b["placed"]}}
     sets = {
         "aerial": sorted(n for n in ids if n.startswith("aerial/")),
         "ground": sorted(n for n in ids if n.startswith("ground/")),
@@ -126,7 +131,7 @@ def build_report(
         g: _ground_entry(
             g,
             reg,
-            by_pnp,
+            how,
             priors,
             pnp,
             dropped or {},
@@ -156,6 +161,7 @@ def build_report(
         "added_pnp_ground_images": sorted(added or []),
         "seeded_ground_images": len(registered_ground(seed)),
         "refined_ground_images": len(refined or {}),
+        "blocks": blocks or [],
         "georef": georef,
         "ground": ground,
         "causes": {c: causes.count(c) for c in CAUSES if c in causes},
