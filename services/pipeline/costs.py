@@ -23,14 +23,14 @@ from services.pipeline.options import JobOptions
 FIT: dict[str, Any] = {
     "seconds_per_unit": {
         "aerial_sfm": 4.4877,
-        "train_splat": 0.1091,
-        "plan_views": 0.427,
-        "render_views": 1.8126,
-        "match_views": 7.5707,
-        "reduce": 0.5298,
-        "combined_sfm": 2.9294,
+        "train_splat": 0.0989,
+        "plan_views": 0.3677,
+        "render_views": 1.6162,
+        "match_views": 7.1308,
+        "reduce": 0.3623,
+        "combined_sfm": 2.5793,
     },
-    "relative_error": {"median": 0.66, "max": 0.87},
+    "relative_error": {"median": 0.553, "max": 0.688},
     "runs": 4,
 }
 PROFILES_MEASURED = ("cpu",)
