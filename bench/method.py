@@ -222,16 +222,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--planners", default="paper,ground-aware,both", help="comma-separated: paper, ground-aware, both"
     )
-    ap.add_argument("--views", type=int, default=2, help="views per ground image")
-    ap.add_argument("--max-keypoints", type=int, default=1024, help="ALIKED keypoints per image")
+    ap.add_argument("--profile", default="cpu", help="job profile whose defaults the options not given take")
+    ap.add_argument("--views", type=int, help="views per ground image (default: the profile's)")
+    ap.add_argument("--max-keypoints", type=int, help="ALIKED keypoints per image (default: the profile's)")
     ap.add_argument(
         "--matchers",
         default="aliked-lightglue",
         help="comma-separated: aliked-lightglue, sift (views' matcher)",
     )
     ap.add_argument("--sift-keypoints", type=int, default=8192, help="SIFT features per image (matcher sift)")
-    ap.add_argument("--splat-steps", type=int, default=1500)
-    ap.add_argument("--splat-max-width", type=int, default=400)
+    ap.add_argument("--splat-steps", type=int, help="3DGS steps (default: the profile's)")
+    ap.add_argument("--splat-max-width", type=int, help="3DGS training width (default: the profile's)")
     ap.add_argument(
         "--block-steps",
         type=int,
@@ -293,21 +294,21 @@ def main(argv: list[str] | None = None) -> int:
     planners = [p.strip() for p in args.planners.split(",") if p.strip()]
     planners = [p for p in ("paper", "ground-aware", "both") if p in planners]  # "both" last
     matchers = [m.strip() for m in args.matchers.split(",") if m.strip()]
-    options = {
+    given = {
         "views_per_ground_image": args.views,
         "max_keypoints": args.max_keypoints,
         "splat_steps": args.splat_steps,
         "splat_max_width": args.splat_max_width,
-        "seed": args.seed,
     }
-    # the aerial SfM of services.sfm.confs["sift-fast"] (SIFT at 1024 px, exhaustive matching)
+    # the job profile's defaults (what `midview run` and the demo run) but for the options given
+    options = {"profile": args.profile, "seed": args.seed}
+    options.update({k: v for k, v in given.items() if v is not None})
     settings = {
         **pipeline.parse_settings_overrides(
             args.splat_set, args.view_set, args.match_set, rendering=args.render_set
         ),
         "torch_threads": args.torch_threads,
         "scene": str(scene),
-        "sfm": {"output": "sfm-sift-fast", "features": {"max_image_size": 1024, "max_num_features": 4096}},
     }
     timings: dict[str, float] = {}
     # the base job: aerial SfM (+ 3DGS)
@@ -343,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in renderers:
             for p in planners:
                 name = config_name(r, p, mt, args.block_steps)
-                keypoints = args.max_keypoints if mt == "aliked-lightglue" else args.sift_keypoints
+                keypoints = base.options.max_keypoints if mt == "aliked-lightglue" else args.sift_keypoints
                 job = make_job(
                     out / name,
                     scene,
@@ -385,7 +386,7 @@ def main(argv: list[str] | None = None) -> int:
         if (bl / f).exists():
             files[label] = bl / f
     t0 = time.perf_counter()
-    files[f"direct ALIKED+LightGlue ({args.max_keypoints})"] = direct_same_budget(scene, base, out)
+    files[f"direct ALIKED+LightGlue ({base.options.max_keypoints})"] = direct_same_budget(scene, base, out)
     timings["direct same budget"] = time.perf_counter() - t0
     for (r, p, mt), job in jobs.items():
         files[f"midview {config_name(r, p, mt, args.block_steps).replace('-', ' ', 1)}"] = (

@@ -23,9 +23,9 @@ DEFAULT_TEXTURES = ROOT.parent / "shared" / "data" / "lund_street"
 # survey: flat photo facades) is kept for continuity with earlier figures
 DEMO_PRESET = "isprs"
 
-# demo settings: chosen so that the demo's survey finishes within 20 minutes on 2 CPU cores
-# the demo's job: the cpu profile (services.pipeline.PROFILES: paper planner, 2 views per ground image,
-# 3000 3DGS steps at 400 px within a 540 s budget, 1024 keypoints), SIFT aerial SfM, ALIKED+LightGlue.
+# the demo's job: `midview run`'s, the cpu profile (services.pipeline.PROFILES: SIFT aerial SfM at 1024 px
+# with 12 neighbours, paper planner, 2 views per ground image, 3000 3DGS steps at 400 px within a 540 s
+# budget and at most 120k Gaussians, 1024 keypoints), ALIKED+LightGlue.
 # The profile's 3DGS budget: 3000 steps took 8.5-9.5 min on most sessions' machines (the baselines'
 # process beside it), 14-17 min on two slower ones, where the demo ran 24-30 min; within the budget the
 # run takes fewer steps (the demo on isprs: 20.6 min with 600 s, the rendering of its views 75 s instead of 5)
@@ -79,18 +79,8 @@ def fit_splat_budget(job, elapsed_s: float, deadline_s: float, console) -> float
     return budget
 
 
-DEMO_SETTINGS = {
-    "torch_threads": 1,
-    # CPU training: cap the model size. 3000 steps at 400 px on small-walk (bench/splat_views.py, 20 views
-    # at 1024 px): 120k Gaussians 1.48x the matchable render-truth matches of the bench's default recipe,
-    # 60k 1.26x, in 490 s against 412 s of training
-    "splat": {"strategy": {"max_gaussians": 120_000}},
-    # a quicker aerial SfM: SIFT at 1024 px, spatial matching of 12 neighbours
-    "sfm": {
-        "features": {"max_image_size": 1024, "max_num_features": 4096},
-        "matching": {"exhaustive_max": 0, "num_neighbors": 12},
-    },
-}
+# torch on one thread: the baselines' process matches beside the pipeline on the same cores
+DEMO_TORCH_THREADS = 1
 
 
 def baseline_reconstruction(job, label: str, match_file: Path, match_conf: dict, out_dir: Path) -> Path:
@@ -460,7 +450,11 @@ def run_demo(
     timings: dict[str, float] = {}
     scene = synthesize(out, preset, seed, tex, supersample, console)
     timings["synth"] = time.perf_counter() - t_start
-    settings = {**DEMO_SETTINGS, "renderer": renderer, "scene": str(scene) if renderer == "gt" else None}
+    settings = {
+        "torch_threads": DEMO_TORCH_THREADS,
+        "renderer": renderer,
+        "scene": str(scene) if renderer == "gt" else None,
+    }
     images = scene / "images"
     job = pipeline.Job.create(
         out / "job", images / "aerial", images / "ground", scene / "pos.csv", scene / "cameras.json",

@@ -143,14 +143,14 @@ def test_run_takes_splat_view_and_match_overrides_and_rejects_bad_ones(tiny_scen
         assert msg in result.output
         assert not bad.exists()
     out = tmp_path / "job"
-    sets = ["--splat-set", "strategy.max_gaussians=120000"]
+    sets = ["--splat-set", "strategy.max_gaussians=200000"]  # a conf entry wins over the option
     sets += ["--view-set", "paper.extra_height_fractions=[0.7]"]
     sets += ["--match-set", "render_detection_threshold=-1", "--match-set", "matcher.filter_threshold=0.05"]
     sets += ["--render-set", "colour=splat", "--render-set", "proxy.cell_m=2"]
     result = runner.invoke(app, ["run", *args, str(out), *cams, "--stages", "splat_all", *sets])
     assert result.exit_code == 2  # nothing before splat_all has run: the job is written, no stage run
     job = Job.load(out)
-    assert job.splat_conf()["strategy"]["max_gaussians"] == 120000
+    assert job.splat_conf()["strategy"]["max_gaussians"] == 200000
     assert job.viewpoint_conf()["paper"]["extra_height_fractions"] == [0.7]
     mconf = job.match_conf()
     assert mconf["render_detection_threshold"] == -1 and mconf["matcher"]["filter_threshold"] == 0.05

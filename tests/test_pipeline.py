@@ -388,3 +388,24 @@ def test_fingerprints_are_made_of_contents_not_times(tmp_path):
     assert pipeline.fingerprint({"k": 1}, [other / "sfm"], other) == pipeline.fingerprint(
         {"k": 1}, [root / "sfm"], root
     )
+
+
+def test_the_profile_sets_the_aerial_sfm_and_the_3dgs_size(tmp_path) -> None:
+    """The cpu profile's SIFT SfM (1024 px, 4096 features, 12 neighbours) and 120k Gaussians, the gpu
+    profile's paper scale; an option given wins, and ALIKED features keep their own conf."""
+    from services.pipeline import Job, JobOptions
+
+    def confs(**options) -> tuple[dict, dict]:
+        job = Job(tmp_path, {}, JobOptions.model_validate(options), {"splat_backend": "cpu"})
+        return job.sfm_conf(), job.splat_conf()
+
+    sfm, splat = confs()
+    assert (sfm["features"]["max_image_size"], sfm["features"]["max_num_features"]) == (1024, 4096)
+    assert sfm["matching"]["num_neighbors"] == 12 and splat["strategy"]["max_gaussians"] == 120_000
+    sfm, splat = confs(profile="gpu")
+    assert (sfm["features"]["max_image_size"], sfm["features"]["max_num_features"]) == (1600, 8192)
+    assert sfm["matching"]["num_neighbors"] == 20 and splat["strategy"]["max_gaussians"] == 0
+    sfm, splat = confs(sfm_max_image_size=2000, splat_max_gaussians=0)
+    assert sfm["features"]["max_image_size"] == 2000 and splat["strategy"]["max_gaussians"] == 0
+    sfm, _ = confs(sfm_features="aliked")
+    assert sfm["features"]["type"] == "aliked" and sfm["features"]["max_image_size"] == 1600  # SIFT's only

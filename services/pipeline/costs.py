@@ -2,7 +2,8 @@
 (docs/results/pipeline-time.json, every default stage of `midview run` alone on a 2-core machine).
 
 Each stage costs `seconds_per_unit x units`, its units counted from the survey and the options: the
-aerial SfM per aerial image, the 3DGS per training step (at most splat_epochs passes over the aerial
+aerial SfM per aerial image and 4096 SIFT features (twice the features: about twice the matching and
+points; measured 2.06x on `isprs`), the 3DGS per training step (at most splat_epochs passes over the aerial
 images it trains on, every 8th held out; at most its time budget), the views' planning,
 rendering, matching and reduction per planned view (ground images x views per ground image x planners),
 the combined reconstruction per ground image. FIT holds the fitted seconds per unit with the fit's
@@ -22,7 +23,7 @@ from services.pipeline.options import JobOptions
 # (median, max over the runs): bench/pipeline_time.py --fit on docs/results/pipeline-time.json
 FIT: dict[str, Any] = {
     "seconds_per_unit": {
-        "aerial_sfm": 4.4877,
+        "aerial_sfm": 2.2438,
         "train_splat": 0.0989,
         "plan_views": 0.3677,
         "render_views": 1.6162,
@@ -44,7 +45,7 @@ def units(options: JobOptions, n_aerial: int, n_ground: int) -> dict[str, float]
     if options.splat_epochs is not None:  # every 8th aerial image held out (services.splat's test_every)
         steps = min(steps, round(options.splat_epochs * (n_aerial - math.ceil(n_aerial / 8))))
     return {
-        "aerial_sfm": float(n_aerial),
+        "aerial_sfm": n_aerial * options.sfm_max_features / 4096.0,
         "train_splat": steps,
         "plan_views": views,
         "train_blocks": 0.0 if options.block_steps == 0 else float(options.block_steps),
@@ -80,9 +81,20 @@ def estimate(
     return {"stages_s": stages, "total_s": total, "relative_error": dict(fit["relative_error"])}
 
 
+# what a run recorded before these options existed ran with: no epoch cap, the SIFT SfM at 1600 px with
+# 8192 features and 20 neighbours, the CPU 3DGS preset's 60k Gaussians
+BEFORE_OPTIONS: dict[str, Any] = {
+    "splat_epochs": None,
+    "sfm_max_image_size": 1600,
+    "sfm_max_features": 8192,
+    "sfm_neighbors": 20,
+    "splat_max_gaussians": 60_000,
+}
+
+
 def run_options(run: dict[str, Any]) -> JobOptions:
-    """The options a timed run ran with (runs recorded before splat_epochs existed trained uncapped)."""
-    return JobOptions.model_validate({"splat_epochs": None, **run["options"]})
+    """The options a timed run ran with (those it does not record: BEFORE_OPTIONS)."""
+    return JobOptions.model_validate({**BEFORE_OPTIONS, **run["options"]})
 
 
 def fit_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:

@@ -276,7 +276,15 @@ class Job:
         from services import sfm
 
         base = sfm.confs[self.options.sfm_features]
-        over: dict[str, Any] = {"mapping": {"seed": self.options.seed}}
+        over: dict[str, Any] = {
+            "mapping": {"seed": self.options.seed},
+            "matching": {"num_neighbors": int(self.options.sfm_neighbors)},
+        }
+        if base["features"]["type"] == "sift":
+            over["features"] = {
+                "max_image_size": int(self.options.sfm_max_image_size),
+                "max_num_features": int(self.options.sfm_max_features),
+            }
         if self.options.out_crs:
             over["export"] = {"out_crs": self.options.out_crs}
         return merge_conf(base, merge_conf(over, self.settings["sfm"]))
@@ -293,6 +301,7 @@ class Job:
             "seed": int(self.options.seed),
             "save_test_renders": False,
             "ckpt_every": max(1, steps // 10),
+            "strategy": {"max_gaussians": int(self.options.splat_max_gaussians)},
         }
         if self.options.splat_time_budget_s is not None:
             over["time_budget_s"] = float(self.options.splat_time_budget_s)

@@ -24,6 +24,10 @@ Profile = Literal["cpu", "gpu"]
 # each profile's values of the options it sets; the others have one default for every profile
 PROFILES: dict[str, dict[str, Any]] = {
     "cpu": {
+        "sfm_max_image_size": 1024,
+        "sfm_max_features": 4096,
+        "sfm_neighbors": 12,
+        "splat_max_gaussians": 120_000,
         "view_planner": "paper",
         "views_per_ground_image": 2,
         "splat_steps": 3000,
@@ -33,6 +37,10 @@ PROFILES: dict[str, dict[str, Any]] = {
         "max_keypoints": 1024,
     },
     "gpu": {
+        "sfm_max_image_size": 1600,
+        "sfm_max_features": 8192,
+        "sfm_neighbors": 20,
+        "splat_max_gaussians": 0,
         "view_planner": "both",
         "views_per_ground_image": 4,
         "splat_steps": 7000,
@@ -70,6 +78,23 @@ class JobOptions(BaseModel):
     sfm_features: Literal["sift", "aliked"] = Field(
         "sift", description="Local features of the aerial structure-from-motion"
     )
+    sfm_max_image_size: int = Field(
+        CPU["sfm_max_image_size"],
+        ge=256,
+        le=16_384,
+        description="Aerial images are downscaled to this size (longest side, pixels) for the SfM's SIFT"
+        " features; their keypoints are kept at full resolution",
+    )
+    sfm_max_features: int = Field(
+        CPU["sfm_max_features"], ge=256, le=65_536, description="SIFT features per aerial image at most"
+    )
+    sfm_neighbors: int = Field(
+        CPU["sfm_neighbors"],
+        ge=2,
+        le=500,
+        description="Aerial images each aerial image is matched with, its nearest by POS, when the survey"
+        " is too large to match every pair and its POS has no attitude for footprint pairs",
+    )
     matcher: Literal["aliked-lightglue", "sift"] = Field(
         "aliked-lightglue", description="Matcher between rendered views and the aerial/ground images"
     )
@@ -83,6 +108,12 @@ class JobOptions(BaseModel):
         CPU["views_per_ground_image"], ge=1, le=16, description="Intermediate views rendered per ground image"
     )
     splat_steps: int = Field(CPU["splat_steps"], ge=100, le=200_000, description="3DGS training iterations")
+    splat_max_gaussians: int = Field(
+        CPU["splat_max_gaussians"],
+        ge=0,
+        le=100_000_000,
+        description="Gaussians of the 3DGS at most (its densification stops growing there); 0: no cap",
+    )
     splat_time_budget_s: float | None = Field(
         CPU["splat_time_budget_s"],
         ge=1,
