@@ -11,7 +11,13 @@ import pycolmap
 from services.colmap_model import Camera, Pose
 from services.geometry import look_at
 from services.sfm.combined import CombinedDatabase, default_conf
-from services.sfm.combined.blocks import block_pose, fit_block, ties_reason, unregistered_chains
+from services.sfm.combined.blocks import (
+    block_pose,
+    chain_ties,
+    fit_block,
+    ties_reason,
+    unregistered_chains,
+)
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
 BC = default_conf["blocks"]
@@ -89,3 +95,52 @@ def test_a_block_camera_sees_the_model_as_it_saw_the_block():
     uv_model, _ = placed.project(CAM.K, np.array([sim * x for x in Xb]))
     assert np.allclose(uv_block, uv_model, atol=1e-6)
     assert np.allclose(placed.center, sim * pose.center)
+
+
+def _model_with_points(poses: dict[str, Pose], ids: dict[str, int], X: np.ndarray) -> pycolmap.Reconstruction:
+    """A reconstruction of the images `poses`, keypoint k of each the projection of X[k], one point per
+    row of X observed by every image."""
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(CAM.to_pycolmap(1))
+    for n, pose in poses.items():
+        uv, _ = pose.project(CAM.K, X)
+        im = pycolmap.Image(name=n, keypoints=np.asarray(uv, float), camera_id=1, image_id=ids[n])
+        rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t))
+    for k, x in enumerate(X):
+        rec.add_point3D(x, pycolmap.Track([pycolmap.TrackElement(ids[n], k) for n in poses]))
+    return rec
+
+
+def test_a_block_is_tied_to_the_registered_ground_images_it_shares_verified_pairs_with(tmp_path):
+    """A block image's keypoints matched (a verified ground-ground pair in the database) to those of a
+    registered walk image tie the block's points to the model's points that image sees; a refused pair
+    ties nothing."""
+    walk = _walk(4)
+    names = sorted(walk)
+    ids = {n: i for i, n in enumerate(names, start=1)}
+    rng = np.random.default_rng(0)
+    X = np.stack([rng.uniform(0, 10, 40), rng.uniform(9.0, 10.0, 40), rng.uniform(0, 6, 40)], 1)
+    rec = _model_with_points({n: walk[n] for n in names[:2]}, ids, X)  # G0000, G0001 registered
+    sim = pycolmap.Sim3d(0.5, pycolmap.Rotation3d(np.eye(3)), [1.0, 2.0, 3.0])  # block_from_model
+    block_poses = {}
+    for n in names[2:]:
+        C = sim * walk[n].center
+        block_poses[n] = Pose(walk[n].R, -walk[n].R @ C)
+    block = _model_with_points(block_poses, ids, np.array([sim * x for x in X]))
+    db = pycolmap.Database.open(str(tmp_path / "c.db"))
+    cid = db.write_camera(CAM.to_pycolmap(1))
+    for n in names:
+        db.write_image(pycolmap.Image(name=n, camera_id=cid, image_id=ids[n]), use_image_id=True)
+    tvg = pycolmap.TwoViewGeometry()
+    tvg.config = 2
+    tvg.inlier_matches = np.stack([np.arange(30), np.arange(30)], 1).astype(np.uint32)  # keypoint k to k
+    db.write_two_view_geometry(ids[names[1]], ids[names[2]], tvg)
+    db.write_two_view_geometry(ids[names[0]], ids[names[3]], tvg)
+    db.close()
+    pairs = {f"{names[1]} {names[2]}": {"accepted": True}, f"{names[0]} {names[3]}": {"accepted": False}}
+    cdb = CombinedDatabase(tmp_path / "c.db", ids, {}, {}, {}, ground_pairs=pairs)
+    Y, Xm, who = chain_ties(block, rec, cdb)
+    assert len(Y) == 30 and {w[0] for w in who} == {names[2]}  # through the accepted pair only
+    assert np.allclose(Xm, X[:30]) and np.allclose(Y, [sim * x for x in X[:30]])
+    fitted, agree = fit_block(Y, Xm, BC)
+    assert fitted is not None and agree.all() and abs(fitted.scale - 2.0) < 1e-6

@@ -4,8 +4,10 @@ A walk's images tie each other by hundreds of verified ground-ground matches, bu
 aerial model through too few points for the mapper to localize it alone (12-18 verified ties an image at
 one end of `isprs-walk`). Pooled, a chain's ties can place it: the chain is reconstructed on its own
 (pycolmap's incremental mapper on its images, in a frame of its own), and a similarity maps it into the
-aerial model's frame where the chain's points meet the aerial points their transferred matches reach
-(LO-RANSAC, pycolmap.estimate_sim3d_robust). A block is placed only when ties of at least two of its
+aerial model's frame where the chain's points meet the model's points: the aerial points their
+transferred matches reach, and the points of the registered ground images they share a verified pair
+with (the walk's images next to the chain, hundreds of matches at a few metres' range) (LO-RANSAC,
+pycolmap.estimate_sim3d_robust). A block is placed only when ties of at least two of its
 images agree (one image's matches alone can all be a repeated facade shifted by a window) and each of its
 cameras then agrees with its POS; its images join the model at those poses, observing the aerial points
 their matches reach and the block's own points, and are refined with the aerial images held.
@@ -109,22 +111,51 @@ def chain_ties(
     block: pycolmap.Reconstruction, rec: pycolmap.Reconstruction, cdb: CombinedDatabase
 ) -> tuple[np.ndarray, np.ndarray, list[tuple[str, int, int]]]:
     """(Y (N, 3) block points, X (N, 3) model points, each tie's (ground image, its keypoint, the model
-    point's id)): a block image's keypoint with a block point, transferred to an aerial keypoint
-    (cdb.ag) that has a model point."""
+    point's id)): a block image's keypoint with a block point, matched to a keypoint with a model point:
+    an aerial keypoint its transferred matches reach (cdb.ag), or a registered ground image's keypoint
+    through their verified ground-ground pair (neighbour_matches)."""
     in_block = {im.name: im for im in block.images.values() if im.has_pose}
     Y, X, who = [], [], []
-    for a, g, m in cdb.ag:
-        bim, aid = in_block.get(g), cdb.ids.get(a, -1)
-        aim = rec.images[aid] if aid in rec.images else None
-        if bim is None or aim is None or not aim.has_pose:
+    for other, g, m in [*cdb.ag, *neighbour_matches(in_block, rec, cdb)]:
+        bim, oid = in_block.get(g), cdb.ids.get(other, -1)
+        oim = rec.images[oid] if oid in rec.images else None
+        if bim is None or oim is None or not oim.has_pose:
             continue
-        for ia, ig in m:
-            pa, pg = aim.points2D[int(ia) + cdb.offsets[a]], bim.points2D[int(ig)]
-            if pa.has_point3D() and pg.has_point3D():
-                X.append(rec.points3D[pa.point3D_id].xyz)
+        offset = cdb.offsets.get(other, 0)
+        for io, ig in m:
+            po, pg = oim.points2D[int(io) + offset], bim.points2D[int(ig)]
+            if po.has_point3D() and pg.has_point3D():
+                X.append(rec.points3D[po.point3D_id].xyz)
                 Y.append(block.points3D[pg.point3D_id].xyz)
-                who.append((g, int(ig), int(pa.point3D_id)))
+                who.append((g, int(ig), int(po.point3D_id)))
     return np.reshape(Y, (-1, 3)), np.reshape(X, (-1, 3)), who
+
+
+def neighbour_matches(
+    in_block: dict[str, pycolmap.Image], rec: pycolmap.Reconstruction, cdb: CombinedDatabase
+) -> list[tuple[str, str, np.ndarray]]:
+    """[(registered ground image, block image, (M, 2) their keypoint indices)]: the inlier matches of the
+    verified ground-ground pairs (cdb.ground_pairs) between a block image and a ground image `rec` holds
+    registered, read from the combined database."""
+    registered = {im.name for im in rec.images.values() if im.has_pose and im.name.startswith("ground/")}
+    pairs = []
+    for key, r in cdb.ground_pairs.items():
+        a, b = key.split(" ", 1)
+        if r.get("accepted"):
+            if a in in_block and b in registered:
+                pairs.append((b, a))
+            elif b in in_block and a in registered:
+                pairs.append((a, b))
+    if not pairs:
+        return []
+    db = pycolmap.Database.open(str(cdb.path))
+    try:
+        return [
+            (o, g, np.asarray(db.read_two_view_geometry(cdb.ids[o], cdb.ids[g]).inlier_matches, np.int64))
+            for o, g in pairs
+        ]
+    finally:
+        db.close()
 
 
 def observe_ties(rec: pycolmap.Reconstruction, ties: list[tuple[str, int, int]], ids: dict[str, int]) -> int:
