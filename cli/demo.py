@@ -24,7 +24,7 @@ DEFAULT_TEXTURES = ROOT.parent / "shared" / "data" / "lund_street"
 DEMO_PRESET = "isprs"
 
 # the demo's job: `midview run`'s, the cpu profile (services.pipeline.PROFILES: SIFT aerial SfM at 1024 px
-# with 12 neighbours, paper planner, 2 views per ground image, 3000 3DGS steps at 400 px within a 540 s
+# with 12 neighbours, paper planner, 2 views per ground image, 3000 3DGS steps at 400 px within a 300 s
 # budget and at most 120k Gaussians, 1024 keypoints), ALIKED+LightGlue.
 # The profile's 3DGS budget: 3000 steps took 8.5-9.5 min on most sessions' machines (the baselines'
 # process beside it), 14-17 min on two slower ones, where the demo ran 24-30 min; within the budget the

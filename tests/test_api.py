@@ -572,7 +572,7 @@ def test_a_job_takes_its_profile_from_the_workers_unless_it_names_one(api_env, m
     try:
         cpu = create({})
         assert (cpu["profile"], cpu["splat_steps"], cpu["splat_max_width"], cpu["splat_time_budget_s"]) == (
-            "cpu", 3000, 400, 540.0,
+            "cpu", 3000, 400, 300.0,
         )  # fmt: skip
         disp.offers = "gpu"
         offered = {p["name"]: p["offered"] for p in c.get("/options").json()["profiles"]}

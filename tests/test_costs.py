@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from services.pipeline import JobOptions, costs
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "pipeline-time.json"
@@ -33,12 +35,16 @@ def test_estimates_grow_with_the_survey_and_the_3dgs_keeps_its_budget():
 
 def test_the_3dgs_of_a_small_survey_is_counted_in_passes_over_its_images():
     """The cpu profile's 3DGS trains at most splat_epochs passes over the aerial images it trains on
-    (every 8th held out): a 20-image survey 60 x 17 steps, isprs's 60 images the whole splat_steps."""
+    (every 8th held out): a 20-image survey 60 x 17 steps, isprs's 60 images the whole splat_steps; a
+    step of 120k Gaussians at most costs 2 ** 0.6 that of 60k, of no cap more."""
     cpu = JobOptions()
-    assert cpu.splat_epochs == 60
-    assert costs.units(cpu, 20, 4)["train_splat"] == 60 * 17
-    assert costs.units(cpu, 60, 20)["train_splat"] == cpu.splat_steps == 3000
-    assert costs.units(JobOptions(splat_epochs=None), 20, 4)["train_splat"] == 3000
+    assert cpu.splat_epochs == 60 and cpu.splat_max_gaussians == 120_000
+    per_step = 2.0**0.6
+    assert costs.units(cpu, 20, 4)["train_splat"] == pytest.approx(60 * 17 * per_step)
+    assert costs.units(cpu, 60, 20)["train_splat"] == pytest.approx(cpu.splat_steps * per_step)
+    small = JobOptions(splat_epochs=None, splat_max_gaussians=60_000)
+    assert costs.units(small, 20, 4)["train_splat"] == 3000
+    assert costs.units(JobOptions(splat_max_gaussians=0), 60, 20)["train_splat"] > 3000 * per_step
 
 
 def test_the_fit_of_runs_recovers_their_rates():

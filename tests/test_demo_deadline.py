@@ -59,7 +59,7 @@ def test_the_job_keeps_the_fitted_budget_and_a_trained_3dgs_keeps_its_own(tiny_s
     assert Job.load(tmp_path / "job").options.splat_time_budget_s == pytest.approx(400.8)
 
 
-@pytest.mark.parametrize(("deadline", "budget"), [("0.05", DEMO_SPLAT_MIN_S), ("19", 540.0)])
+@pytest.mark.parametrize(("deadline", "budget"), [("0.05", DEMO_SPLAT_MIN_S), ("19", 300.0)])
 def test_the_demo_fits_the_budget_before_the_3dgs_trains(tiny_scene, tmp_path, monkeypatch, deadline, budget):
     """The demo runs the stages before train_splat, fits the budget, then runs train_splat with it."""
     import cli.run

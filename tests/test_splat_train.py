@@ -664,14 +664,14 @@ def test_the_job_option_sets_the_trainers_time_budget(tmp_path):
     job = Job(tmp_path, {}, JobOptions(splat_time_budget_s=600), {"splat_backend": "cpu"})
     assert job.splat_conf()["time_budget_s"] == 600.0
     # the profiles' budgets: the cpu profile's (measured on 2 cores), none at the gpu profile's scale
-    assert Job(tmp_path, {}, JobOptions(), {"splat_backend": "cpu"}).splat_conf()["time_budget_s"] == 540.0
+    assert Job(tmp_path, {}, JobOptions(), {"splat_backend": "cpu"}).splat_conf()["time_budget_s"] == 300.0
     gpu = JobOptions.model_validate({"profile": "gpu"})
     assert Job(tmp_path, {}, gpu, {"splat_backend": "cpu"}).splat_conf()["time_budget_s"] is None
     with pytest.raises(ValueError):
         JobOptions(splat_time_budget_s=0)
     spec = next(s for s in option_specs() if s["name"] == "splat_time_budget_s")
     assert spec["type"] == "number | null" and spec["minimum"] == 1
-    assert spec["default"] == 540.0 and spec["defaults"] == {"cpu": 540.0, "gpu": None}
+    assert spec["default"] == 300.0 and spec["defaults"] == {"cpu": 300.0, "gpu": None}
 
 
 def test_the_strategy_leaves_a_model_of_no_gaussians_alone():

@@ -3,8 +3,9 @@
 
 Each stage costs `seconds_per_unit x units`, its units counted from the survey and the options: the
 aerial SfM per aerial image and 4096 SIFT features (twice the features: about twice the matching and
-points; measured 2.06x on `isprs`), the 3DGS per training step (at most splat_epochs passes over the aerial
-images it trains on, every 8th held out; at most its time budget), the views' planning,
+points; measured 2.06x on `isprs`), the 3DGS per training step of at most 60k Gaussians (a larger cap: its
+0.6th power; at most splat_epochs passes over the aerial images it trains on, every 8th held out; at most
+its time budget), the views' planning,
 rendering, matching and reduction per planned view (ground images x views per ground image x planners),
 the combined reconstruction per ground image. FIT holds the fitted seconds per unit with the fit's
 leave-one-out relative error (`bench/pipeline_time.py --fit` prints it; tests/test_costs.py checks it
@@ -41,12 +42,15 @@ def units(options: JobOptions, n_aerial: int, n_ground: int) -> dict[str, float]
     """The units of each default stage of a job on a survey of n_aerial and n_ground images."""
     planners = 2 if options.view_planner == "both" else 1
     views = float(n_ground * options.views_per_ground_image * planners)
+    # a step's cost grows with the Gaussians' cap as its 0.6th power (3000 steps on `isprs`: 295 s with
+    # 60k, 448 s with 120k, 1.52x); no cap counted as a million
+    gaussians = (options.splat_max_gaussians or 1_000_000) / 60_000.0
     steps = float(options.splat_steps)
     if options.splat_epochs is not None:  # every 8th aerial image held out (services.splat's test_every)
         steps = min(steps, round(options.splat_epochs * (n_aerial - math.ceil(n_aerial / 8))))
     return {
         "aerial_sfm": n_aerial * options.sfm_max_features / 4096.0,
-        "train_splat": steps,
+        "train_splat": steps * gaussians**0.6,
         "plan_views": views,
         "train_blocks": 0.0 if options.block_steps == 0 else float(options.block_steps),
         "render_views": views,

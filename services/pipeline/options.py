@@ -31,7 +31,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "view_planner": "paper",
         "views_per_ground_image": 2,
         "splat_steps": 3000,
-        "splat_time_budget_s": 540.0,
+        "splat_time_budget_s": 300.0,
         "splat_epochs": 60.0,
         "splat_max_width": 400,
         "max_keypoints": 1024,
