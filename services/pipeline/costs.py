@@ -24,15 +24,15 @@ from services.pipeline.options import JobOptions
 # (median, max over the runs): bench/pipeline_time.py --fit on docs/results/pipeline-time.json
 FIT: dict[str, Any] = {
     "seconds_per_unit": {
-        "aerial_sfm": 2.2438,
-        "train_splat": 0.0989,
-        "plan_views": 0.3677,
-        "render_views": 1.6162,
-        "match_views": 7.1308,
-        "reduce": 0.3623,
-        "combined_sfm": 2.5793,
+        "aerial_sfm": 1.5797,
+        "train_splat": 0.0991,
+        "plan_views": 0.3585,
+        "render_views": 1.6147,
+        "match_views": 6.2328,
+        "reduce": 0.3775,
+        "combined_sfm": 1.7117,
     },
-    "relative_error": {"median": 0.553, "max": 0.688},
+    "relative_error": {"median": 0.355, "max": 0.624},
     "runs": 4,
 }
 PROFILES_MEASURED = ("cpu",)
