@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from services.colmap_model import Pose
 from services.geometry import pose_of_image
 from services.sfm.combined.database import CombinedDatabase
 from services.sfm.combined.mapping import add_at_poses, drop_ill_determined, mapper_options
@@ -197,13 +198,13 @@ def ties_reason(ties: tuple[int, int], tie_images: list[str], bc: dict) -> str:
     )
 
 
-def block_pose(image: pycolmap.Image, sim: pycolmap.Sim3d) -> dict[str, list]:
-    """The cam_from_world record (R, t) in the model's frame of a block image (sim: model_from_block)."""
+def block_pose(image: pycolmap.Image, sim: pycolmap.Sim3d) -> Pose:
+    """The pose (cam_from_world) in the model's frame of a block image (sim: model_from_block)."""
     pose = pose_of_image(image)
     R_sim = np.asarray(sim.rotation.matrix())
     R = pose.R @ R_sim.T
     C = float(sim.scale) * R_sim @ pose.center + np.asarray(sim.translation).ravel()
-    return {"R": R.tolist(), "t": (-R @ C).tolist()}
+    return Pose(R, -R @ C)
 
 
 def add_block_points(
@@ -236,7 +237,6 @@ def place_chain(
 ) -> Block:
     """One chain reconstructed, fitted to the model by its ties and added to `rec` at those poses where
     each camera agrees with its POS (conf: the combined SfM's; its "blocks" section decides)."""
-    from services.colmap_model import Pose
     from services.reduce import prior_agreement
 
     bc = conf["blocks"]
@@ -258,15 +258,14 @@ def place_chain(
     for im in b.model.images.values():
         if not im.has_pose:
             continue
-        r = block_pose(im, sim)
-        pose = Pose(np.asarray(r["R"]), np.asarray(r["t"]))
+        pose = block_pose(im, sim)
         if (
             im.name in cdb.priors
             and prior_agreement(pose, cdb.priors[im.name], cdb.prior_std.get(im.name), pos_limits)[2]
         ):
             off_pos.append(im.name)
         else:
-            poses[im.name] = r
+            poses[im.name] = {"R": pose.R.tolist(), "t": pose.t.tolist()}
     if len(poses) < int(bc["min_images"]):
         b.reason = f"{len(off_pos)} of {len(poses) + len(off_pos)} cameras disagree with their POS"
         return b
