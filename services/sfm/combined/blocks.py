@@ -254,26 +254,27 @@ def place_chain(
     if b.reason:
         return b
     b.sim = sim
-    poses, off_pos = {}, []
+    poses, off_pos = {}, {}
     for im in b.model.images.values():
         if not im.has_pose:
             continue
         pose = block_pose(im, sim)
-        if (
-            im.name in cdb.priors
-            and prior_agreement(pose, cdb.priors[im.name], cdb.prior_std.get(im.name), pos_limits)[2]
-        ):
-            off_pos.append(im.name)
+        prior = cdb.priors.get(im.name)
+        why = prior_agreement(pose, prior, cdb.prior_std.get(im.name), pos_limits)[2] if prior else []
+        if why:
+            off_pos[im.name] = "; ".join(why)
         else:
             poses[im.name] = {"R": pose.R.tolist(), "t": pose.t.tolist()}
     if len(poses) < int(bc["min_images"]):
-        b.reason = f"{len(off_pos)} of {len(poses) + len(off_pos)} cameras disagree with their POS"
+        named = "; ".join(f"{n}: {w}" for n, w in off_pos.items())
+        b.reason = f"{len(off_pos)} of {len(poses) + len(off_pos)} cameras disagree with their POS ({named})"
         return b
     b.placed = add_at_poses(rec, poses, cdb.path, cdb.ids, cdb.offsets, cdb.ag, conf)
     observe_ties(rec, [w for w, ok in zip(who, agree, strict=True) if ok and w[0] in poses], cdb.ids)
     add_block_points(rec, b.model, sim, {cdb.ids[g] for g in b.placed})
     if off_pos:
-        b.reason = f"placed but for {len(off_pos)} cameras that disagree with their POS: {', '.join(off_pos)}"
+        named = "; ".join(f"{n}: {w}" for n, w in off_pos.items())
+        b.reason = f"placed but for {len(off_pos)} cameras that disagree with their POS ({named})"
     return b
 
 
