@@ -93,7 +93,7 @@ class JobOptions(BaseModel):
         ge=2,
         le=500,
         description="Aerial images each aerial image is matched with, its nearest by POS, when the survey"
-        " is too large to match every pair and its POS has no attitude for footprint pairs",
+        " is too large to match every pair and has no footprints (no POS attitude or terrain height)",
     )
     matcher: Literal["aliked-lightglue", "sift"] = Field(
         "aliked-lightglue", description="Matcher between rendered views and the aerial/ground images"
