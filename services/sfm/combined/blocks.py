@@ -265,15 +265,14 @@ def place_chain(
             off_pos[im.name] = "; ".join(why)
         else:
             poses[im.name] = {"R": pose.R.tolist(), "t": pose.t.tolist()}
+    named = "; ".join(f"{n}: {w}" for n, w in off_pos.items())
     if len(poses) < int(bc["min_images"]):
-        named = "; ".join(f"{n}: {w}" for n, w in off_pos.items())
         b.reason = f"{len(off_pos)} of {len(poses) + len(off_pos)} cameras disagree with their POS ({named})"
         return b
     b.placed = add_at_poses(rec, poses, cdb.path, cdb.ids, cdb.offsets, cdb.ag, conf)
     observe_ties(rec, [w for w, ok in zip(who, agree, strict=True) if ok and w[0] in poses], cdb.ids)
     add_block_points(rec, b.model, sim, {cdb.ids[g] for g in b.placed})
     if off_pos:
-        named = "; ".join(f"{n}: {w}" for n, w in off_pos.items())
         b.reason = f"placed but for {len(off_pos)} cameras that disagree with their POS ({named})"
     return b
 
