@@ -40,16 +40,18 @@ from services.geometry import scaled_camera  # noqa: E402
 def candidate_renderer(job: pipeline.Job, base: dict, depth: str, sweep_over: dict, over: dict | None = None):
     """The job's views' renderer with its views' conf `base` and the depth `depth` ("splat": the 3DGS
     alone), `over` set in that depth's conf (the proxy's for "proxy" and "stereo", the sweep's, on top
-    of `sweep_over`, for "sweep")."""
+    of `sweep_over`, for "sweep"; a key "tracks.KEY" sets the learned tracks' conf, services.views.tracks)."""
     if depth == "splat":
         from services.views import SplatRenderer
 
         return SplatRenderer(job.splat.dir, job.settings["splat_backend"], job.render_conf()["min_alpha"])
-    views = {"depth": depth, "sweep": sweep_over, "proxy": {}}
+    over = dict(over or {})
+    tracks = {k.split(".", 1)[1]: over.pop(k) for k in list(over) if k.startswith("tracks.")}
+    views = {"depth": depth, "sweep": sweep_over, "proxy": {}, "tracks": tracks}
     if depth in ("proxy", "stereo"):
-        views["proxy"] = over or {}
+        views["proxy"] = over
     else:
-        views["sweep"] = {**sweep_over, **(over or {})}
+        views["sweep"] = {**sweep_over, **over}
     job.settings["views"] = merge_conf(base, views)
     return job.renderer(blocks=False)
 
@@ -74,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         "--depths",
         default="splat,proxy,sweep",
         help="comma-separated: splat, proxy, sweep, stereo; a variant as KIND@KEY=VALUE@KEY=VALUE (keys of "
-        "the proxy's conf for proxy and stereo, of the sweep's for sweep)",
+        "the proxy's conf for proxy and stereo, of the sweep's for sweep; tracks.KEY: the learned tracks')",
     )
     ap.add_argument("--width", type=int, default=512, help="views are measured this wide")
     ap.add_argument("--limit", type=int, default=0, help="at most this many views, evenly spread (0: all)")

@@ -391,7 +391,7 @@ class Job:
                 self.image_dir,
                 conf,
                 colour=colour,
-                stereo_cache=self.root / "stereo",
+                cache_dir=self.root / "stereo",
                 scene=self.settings.get("scene"),
             )
         return base

@@ -83,7 +83,9 @@ confs: dict[str, dict[str, Any]] = {
         "terrain_min_points": 10,
         # the planes found among the sparse points and points of the aerial images' dense stereo surface
         # (services.views.stereo, one per dense_voxel_m voxel): facades the sparse model hardly holds get
-        # a plane of their own ("none": the sparse points alone). The renderer builds the surface.
+        # a plane of their own ("none": the sparse points alone), or the points of learned tracks across
+        # the aerial images triangulated on the model's poses ("tracks", services.views.tracks). The
+        # renderer builds them.
         "dense_points": "none",
         "dense_voxel_m": 0.5,
         "dense_max_tilt_deg": -1.0,  # >= 0: only the dense points of walls (normal this near horizontal)

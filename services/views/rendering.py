@@ -39,6 +39,7 @@ from services.views.stereo import StereoSurface
 from services.views.stereo import confs as stereo_confs
 from services.views.sweep import PlaneSweep
 from services.views.sweep import confs as sweep_confs
+from services.views.tracks import confs as tracks_confs
 from shared.logging import stage
 
 logger = logging.getLogger("midview.views")
@@ -65,6 +66,7 @@ confs: dict[str, dict[str, Any]] = {
         # tell what the plan owes to the depth from what the colour owes to it (bench/method.py --render-set)
         "plan_depth": "same",
         "stereo": dict(stereo_confs["default"]),
+        "tracks": dict(tracks_confs["default"]),  # the proxy's dense points "tracks"
         "sweep": dict(sweep_confs["default"]),
         "orthophoto": dict(orthophoto.confs["default"]),  # services.views.orthophoto, with the views
     },
@@ -121,20 +123,23 @@ class SourceRenderer:
         image_dir: str | Path,
         conf: dict | None = None,
         colour: bool = True,
-        stereo_cache: str | Path | None = None,
+        cache_dir: str | Path | None = None,
         scene: str | Path | None = None,
     ):
-        """`stereo_cache`: a folder where the stereo surface (conf depth "stereo") is kept for reuse;
-        `scene`: the synthetic scene folder whose true depth conf depth "truth" takes."""
+        """`cache_dir`: a folder where what is built from the aerial model alone (the stereo surface, the
+        learned tracks) is kept for reuse; `scene`: the synthetic scene folder whose true depth conf depth
+        "truth" takes."""
         import pycolmap
+
+        from services.views import tracks
 
         c = {**confs["default"], **(conf or {})}
         rec = pycolmap.Reconstruction(str(sparse_dir))  # read once for the planes and the sources
         self.base = base
 
         def stereo() -> StereoSurface:
-            if stereo_cache is not None:
-                return StereoSurface.cached(sparse_dir, image_dir, c["stereo"], stereo_cache)
+            if cache_dir is not None:
+                return StereoSurface.cached(sparse_dir, image_dir, c["stereo"], cache_dir)
             return StereoSurface.build(rec, image_dir, c["stereo"])
 
         self.stereo = self.truth = None
@@ -146,8 +151,11 @@ class SourceRenderer:
             dense = (self.stereo or stereo()).points(
                 float(c["proxy"]["dense_voxel_m"]), tilt if tilt >= 0 else None
             )
+        elif c["proxy"].get("dense_points") == "tracks":
+            dense = tracks.cached(sparse_dir, image_dir, c["tracks"], cache_dir)
         elif c["proxy"].get("dense_points", "none") != "none":
-            raise ValueError(f"unknown dense points {c['proxy']['dense_points']!r} of the proxy (stereo)")
+            kind = c["proxy"]["dense_points"]
+            raise ValueError(f"unknown dense points {kind!r} of the proxy (none, stereo, tracks)")
         self.proxy = PlaneProxy.from_model(rec, c["proxy"], dense)
         self.sources = SourceImages(rec, image_dir, c["source"])
         if c["depth"] == "truth":
