@@ -89,6 +89,30 @@ def test_unrelated_matches_are_rejected(street):
     assert not rec["accepted"] and len(inl) == 0
 
 
+def test_matches_no_motion_of_the_calibrated_camera_explains_are_rejected(street):
+    """A pair whose matches fit a fundamental matrix but no essential matrix of the ground camera (what
+    repeated texture on different surfaces gives): the second image's points as another camera (twice the
+    focal length, off-centre) would see the same points, with POS poses that agree in rotation."""
+    pose0, pose1, uv0, _ = street
+    other = Camera(model="PINHOLE", width=1024, height=768, params=[1500.0, 1500.0, 380.0, 300.0])
+    rng = np.random.default_rng(5)
+    X = np.stack([rng.uniform(-25, 40, 300), 20.0 + rng.uniform(0, 4, 300), rng.uniform(0, 15, 300)], 1)
+    uv0, z0 = pose0.project(CAM.K, X)
+    uv1, z1 = pose1.project(other.K, X)
+    inside = (z0 > 0) & (z1 > 0)
+    for uv in (uv0, uv1):
+        inside &= (uv[:, 0] >= 0) & (uv[:, 0] < CAM.width) & (uv[:, 1] >= 0) & (uv[:, 1] < CAM.height)
+    m = _matches(int(inside.sum()), 0, rng)
+    inl, rec = verify_ground_pair(uv0[inside], uv1[inside], m, CAM, pose0, pose1, STD, STD, CONF)
+    assert rec["config"] == "UNCALIBRATED" and not rec["accepted"] and len(inl) == 0
+    assert "uncalibrated" in rec["reason"]
+    # the check can be switched off: the pair is then judged by its rotation and baseline alone
+    _, kept = verify_ground_pair(
+        uv0[inside], uv1[inside], m, CAM, pose0, pose1, STD, STD, {**CONF, "require_calibrated": False}
+    )
+    assert "uncalibrated" not in kept["reason"]
+
+
 class _Wall:
     """A plane proxy of one facade, the plane y = 20 (x in [-60, 100], z in [0, 15]), ray cast exactly."""
 

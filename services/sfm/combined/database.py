@@ -161,6 +161,13 @@ def verify_ground_pair(
     if len(inl) < int(conf["min_inliers"]):
         rec["reason"] = f"{len(inl)} inliers (< {conf['min_inliers']})"
         return none, rec
+    uncalibrated = tvg.config == pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
+    if uncalibrated and conf.get("require_calibrated", True):
+        rec["reason"] = (
+            "an uncalibrated fundamental matrix explains more of its matches than any motion of the "
+            "calibrated camera (repeated texture on different surfaces)"
+        )
+        return none, rec
     rel = tvg.cam2_from_cam1
     R_est = np.asarray(rel.rotation.matrix())
     R_pos = prior1.R @ prior0.R.T
