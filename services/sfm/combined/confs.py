@@ -26,6 +26,7 @@ default_conf: dict[str, Any] = {
         # better than an essential matrix (COLMAP's UNCALIBRATED two-view configuration) is refused; on
         # isprs 3 of the 5 verified pairs without a correct match, none of the true ones
         "require_calibrated": True,
+        "min_e_f_inlier_ratio": 0.95,  # ... below this share of F's inliers for E's (COLMAP's default)
         "seed": 0,
         # ... and whose matches fit the scene: lifted onto the aerial surface from the first image's POS,
         # they must place the second camera by PnP where its POS says (services.sfm.combined.surface)

@@ -150,6 +150,7 @@ def verify_ground_pair(
     o.ransac.max_error = float(conf["ransac_px"])
     o.ransac.random_seed = int(conf["seed"])
     o.ransac.min_inlier_ratio = 0.1
+    o.min_E_F_inlier_ratio = float(conf.get("min_e_f_inlier_ratio", o.min_E_F_inlier_ratio))
     cam = camera.to_pycolmap(1)
     p0 = np.ascontiguousarray(np.asarray(kp0, np.float64)[m[:, 0], :2])
     p1 = np.ascontiguousarray(np.asarray(kp1, np.float64)[m[:, 1], :2])
