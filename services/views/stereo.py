@@ -72,15 +72,36 @@ def _dist_coeffs(cam: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
     raise ValueError(f"stereo: camera model {name} is not supported")
 
 
-def stereo_pairs(rec: pycolmap.Reconstruction, conf: dict) -> list[tuple[int, int, int]]:
-    """(image id, image id, shared points) of the pairs to match: for every image its
-    `pairs_per_image` best partners by shared sparse points among those with a sideways baseline."""
+def shared_points(rec: pycolmap.Reconstruction) -> dict[tuple[int, int], int]:
+    """{(image id a, image id b), a < b: the sparse points both images see}."""
     shared: dict[tuple[int, int], int] = {}
     for p in rec.points3D.values():
         ids = sorted({el.image_id for el in p.track.elements})
         for a in range(len(ids)):
             for b in range(a + 1, len(ids)):
                 shared[(ids[a], ids[b])] = shared.get((ids[a], ids[b]), 0) + 1
+    return shared
+
+
+def voxel_means(V: np.ndarray, voxel_m: float) -> np.ndarray:
+    """The mean of the points V (N, 3) in each voxel of voxel_m metres: (M, 3)."""
+    if not len(V):
+        return np.zeros((0, 3))
+    cells = np.floor(V / np.float32(voxel_m)).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # one int64 per voxel
+    del cells
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    del keys
+    sums = [np.bincount(inverse, weights=V[:, k], minlength=len(counts)) for k in range(3)]
+    return np.stack(sums, 1) / counts[:, None]
+
+
+def stereo_pairs(rec: pycolmap.Reconstruction, conf: dict) -> list[tuple[int, int, int]]:
+    """(image id, image id, shared points) of the pairs to match: for every image its
+    `pairs_per_image` best partners by shared sparse points among those with a sideways baseline."""
+    shared = shared_points(rec)
     poses = {i: Pose.of_image(im) for i, im in rec.images.items() if im.has_pose}
     depth = {}  # median depth of each image's sparse points
     for i, pose in poses.items():
@@ -333,15 +354,7 @@ class StereoSurface:
             V = V[np.abs(nz) < np.sin(np.radians(float(max_tilt_deg)))]
         if not len(V):
             return np.zeros((0, 3))
-        cells = np.floor(V / np.float32(voxel_m)).astype(np.int64)
-        cells -= cells.min(axis=0)
-        span = cells.max(axis=0) + 1
-        keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # one int64 per voxel
-        del cells
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-        del keys
-        sums = [np.bincount(inverse, weights=V[:, k], minlength=len(counts)) for k in range(3)]
-        return np.stack(sums, 1) / counts[:, None]
+        return voxel_means(V, voxel_m)
 
     def depth(self, camera: Camera, pose: Pose) -> np.ndarray:
         """z-depth (H, W) of the surface at a camera, 0 where a ray hits nothing."""

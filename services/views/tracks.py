@@ -30,6 +30,7 @@ import pycolmap
 
 from services.colmap_model import Pose
 from services.digests import sha256_file
+from services.views.stereo import shared_points, voxel_means
 
 logger = logging.getLogger("midview.views.tracks")
 
@@ -58,12 +59,7 @@ confs: dict[str, dict[str, Any]] = {
 def covisible_pairs(rec: pycolmap.Reconstruction, partners: int, min_shared: int) -> list[tuple[int, int]]:
     """(image id, image id) pairs, a < b: for every registered image its `partners` best partners by the
     sparse points they share (at least min_shared)."""
-    shared: dict[tuple[int, int], int] = {}
-    for p in rec.points3D.values():
-        ids = sorted({el.image_id for el in p.track.elements})
-        for i, a in enumerate(ids):
-            for b in ids[i + 1 :]:
-                shared[(a, b)] = shared.get((a, b), 0) + 1
+    shared = shared_points(rec)
     best: dict[int, list[tuple[int, int]]] = {}
     for (a, b), n in shared.items():
         if n >= min_shared:
@@ -253,17 +249,6 @@ def triangulate(rec: pycolmap.Reconstruction, image_dir: str | Path, conf: dict 
         t_feat, t_match, time.perf_counter() - t0,
     )  # fmt: skip
     return out
-
-
-def voxel_means(P: np.ndarray, voxel_m: float) -> np.ndarray:
-    """The mean of the points (N, 3) in each voxel of voxel_m metres: (M, 3)."""
-    if not len(P):
-        return np.zeros((0, 3))
-    cells = np.floor(P / voxel_m).astype(np.int64)
-    _, inv, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inv.ravel(), P)
-    return sums / counts[:, None]
 
 
 def cached(
