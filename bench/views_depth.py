@@ -2,14 +2,16 @@
 
     python bench/views_depth.py --job runs/bench/method-isprs-seed0/splat-ground-aware \
         --scene runs/bench/scene-isprs-seed0 --depths splat,proxy,sweep --width 512 \
-        [--sweep-set KEY=VALUE] [--limit 20] [--json docs/results/views-depth.json]
+        [--sweep-set KEY=VALUE] [--limit 20] [--at views|ground] [--json docs/results/views-depth.json]
 
 A view coloured from the aerial images shows each one's texture where the view's depth puts it: the depth
 decides whether that texture lands where the ground image has it. For every planned view of the job
 (plan/views.json, `--limit` of them evenly spread) this renders the depth of each candidate at `--width`
 with the job's renderer (services.views.rendering, conf depth per candidate; "splat" is the 3DGS's own
 depth) and the true depth (the synthetic scene ray cast in the aerial model's frame), and keeps the
-pixels whose true surface two aerial images see (nothing else can be coloured from them). Per
+pixels whose true surface two aerial images see (nothing else can be coloured from them). With
+`--at ground` the cameras are the ground images' own, at their true poses (what a view planned at a
+ground camera shows, and the depth that lifts a ground image's pixels onto the aerial surface). Per
 candidate: the median relative depth error there (a pixel without depth counts as wrong), the share
 within 2% and 5%, and seconds per view. Figures pool the pixels of all views.
 """
@@ -66,6 +68,32 @@ def seen_pixels(gt, aerial: list, camera: Camera, pose: Pose) -> tuple[np.ndarra
     return d, mask
 
 
+def planned_views(job: pipeline.Job) -> list[tuple[Camera, Pose]]:
+    """The job's planned views (plan/views.json): (camera, pose) each."""
+    views = json.loads(job.plan.views.read_text())["views"]
+    return [
+        (Camera(**v["camera"]), Pose(np.asarray(v["pose"]["R"], float), np.asarray(v["pose"]["t"], float)))
+        for v in views
+    ]
+
+
+def ground_cameras(scene: Path, gt) -> list[tuple[Camera, Pose]]:
+    """The scene's ground cameras at their true poses, taken into the aerial model's frame (the inverse of
+    the truth renderer's truth_from_model similarity)."""
+    from services.colmap_model import read_model
+
+    cameras, poses = read_model(scene / "gt" / "sparse")
+    out = []
+    for name in sorted(n for n in poses if n.startswith("ground/")):
+        p = poses[name]
+        center = gt.R.T @ (p.center - gt.t) / gt.s
+        R = (
+            p.R @ gt.R
+        )  # cam_from_world of the model's frame: cam_from_truth after truth_from_model's rotation
+        out.append((cameras[name], Pose.from_center(R.T, center)))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument(
@@ -80,6 +108,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--width", type=int, default=512, help="views are measured this wide")
     ap.add_argument("--limit", type=int, default=0, help="at most this many views, evenly spread (0: all)")
+    ap.add_argument(
+        "--at",
+        choices=("views", "ground"),
+        default="views",
+        help="the job's planned views, or the ground cameras at their true poses",
+    )
     ap.add_argument("--sweep-set", action="append", default=[], metavar="KEY=VALUE", help="sweep conf entry")
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args(argv)
@@ -88,18 +122,18 @@ def main(argv: list[str] | None = None) -> int:
     job = pipeline.Job.load(args.job)
     base_views = dict(job.settings.get("views", {}))
     sweep_over = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.sweep_set)}
-    views = json.loads(job.plan.views.read_text())["views"]
-    if args.limit and len(views) > args.limit:
-        views = [views[i] for i in np.linspace(0, len(views) - 1, args.limit).round().astype(int)]
     gt = GroundTruthRenderer(args.scene, job.sfm.sparse)
+    cams = ground_cameras(args.scene, gt) if args.at == "ground" else planned_views(job)
+    if args.limit and len(cams) > args.limit:
+        cams = [cams[i] for i in np.linspace(0, len(cams) - 1, args.limit).round().astype(int)]
     aerial = aerial_truth_depths(gt, job.sfm.sparse, 480)
     truths = []
-    for v in views:
-        cam = scaled_camera(Camera(**v["camera"]), args.width)
-        pose = Pose(np.asarray(v["pose"]["R"], float), np.asarray(v["pose"]["t"], float))
+    for cam, pose in cams:
+        cam = scaled_camera(cam, args.width)
         truths.append((cam, pose, *seen_pixels(gt, aerial, cam, pose)))
     figures: dict = {
-        "views": len(views),
+        "at": args.at,
+        "views": len(cams),
         "width_px": args.width,
         "seen_pixels": int(sum(t[3].sum() for t in truths)),
     }
