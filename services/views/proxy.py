@@ -73,6 +73,7 @@ confs: dict[str, dict[str, Any]] = {
         "roof_min_height_m": 2.5,
         "roof_min_area_m2": 40.0,
         "roof_outline_m": 1.0,
+        "roof_clutter_m": 3.0,  # what stands on a roof (ducts, stair houses) is lower than this
         "wall_snap_m": 1.5,
         "wall_snap_points": 5,
         "wall_max_tilt_deg": 8.0,
@@ -354,7 +355,7 @@ def roof_walls(planes: list[Plane], P: np.ndarray, terrain: Terrain, conf: dict)
         contours, _ = cv2.findContours(pl.occ.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         for cnt in contours:
             if cv2.contourArea(cnt) * cell**2 < float(conf["roof_min_area_m2"]) or not _open_above(
-                pl, cnt, P, tree
+                pl, cnt, P, tree, float(conf["roof_clutter_m"])
             ):
                 continue  # a balcony, a canopy, a car: not a building's roof
             poly = cv2.approxPolyDP(cnt, float(conf["roof_outline_m"]) / cell, True)[:, 0, :].astype(float)
@@ -370,10 +371,12 @@ def roof_walls(planes: list[Plane], P: np.ndarray, terrain: Terrain, conf: dict)
     return walls
 
 
-def _open_above(roof: Plane, contour: np.ndarray, P: np.ndarray, tree: cKDTree) -> bool:
+def _open_above(
+    roof: Plane, contour: np.ndarray, P: np.ndarray, tree: cKDTree, clutter_m: float = 1.0
+) -> bool:
     """Whether nothing stands on the horizontal plane `roof` within its outline `contour` (cells): at
-    most 30% of the sparse points P (N, 3) over it lie more than 1 m above it (a balcony or a
-    canopy has its facade's points above it; a roof has the sky)."""
+    most 30% of the sparse points P (N, 3) over it lie more than clutter_m above it (a balcony or a
+    canopy has its facade's points above it; a roof has the sky, and what stands on it is low)."""
     inside = np.zeros_like(roof.occ, np.uint8)
     cv2.drawContours(inside, [contour], -1, 1, -1)
     ii, jj = np.nonzero(inside)
@@ -385,7 +388,7 @@ def _open_above(roof: Plane, contour: np.ndarray, P: np.ndarray, tree: cKDTree) 
     if len(near) == 0:
         return True
     height = P[near, 2] - float(cells[:, 2].mean())
-    return float(np.mean(height > 1.0)) <= 0.3
+    return float(np.mean(height > clutter_m)) <= 0.3
 
 
 def _roof_wall(
