@@ -87,9 +87,8 @@ def ground_cameras(scene: Path, gt) -> list[tuple[Camera, Pose]]:
     for name in sorted(n for n in poses if n.startswith("ground/")):
         p = poses[name]
         center = gt.R.T @ (p.center - gt.t) / gt.s
-        R = (
-            p.R @ gt.R
-        )  # cam_from_world of the model's frame: cam_from_truth after truth_from_model's rotation
+        # the model's cam_from_world: cam_from_truth after truth_from_model's rotation
+        R = p.R @ gt.R
         out.append((cameras[name], Pose.from_center(R.T, center)))
     return out
 

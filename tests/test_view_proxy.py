@@ -189,6 +189,16 @@ def test_a_plane_is_a_connected_surface_not_a_slice_through_every_facade_at_one_
     assert max(spans) == 1 and len(spans) == 12  # each facade's wall and its balcony
 
 
+def _box_walls(camera: Camera, pose) -> tuple[np.ndarray, np.ndarray]:
+    """(the true z-depth (H, W) of the box scene, the pixels on the box's walls)."""
+    truth = _box_depth(camera, pose)
+    v, u = np.nonzero(truth > 0)
+    X = pose.unproject(camera.K, np.stack([u + 0.5, v + 0.5], 1), truth[v, u])
+    wall = np.zeros_like(truth, bool)
+    wall[v, u] = (X[:, 2] > 0.05) & (X[:, 2] < BOX[1][2] - 0.05)
+    return truth, wall
+
+
 def test_walls_under_the_roofs_outline_where_the_facades_hold_no_points():
     """The sparse model holds the roof and the street but not one point of the walls (facades the
     aerial images see at grazing angles): with roof_walls, walls stand under the roof's outline, fitted
@@ -200,11 +210,7 @@ def test_walls_under_the_roofs_outline_where_the_facades_hold_no_points():
     cam = Camera("PINHOLE", 320, 240, [260.0, 260.0, 160.0, 120.0])
     for centre, target in (((0.0, -16.0, 1.5), (0.0, -4.0, 2.0)), ((14.0, -14.0, 1.5), (5.0, -4.0, 3.0))):
         pose = look_at(np.array(centre), np.array(target))
-        truth = _box_depth(cam, pose)
-        v, u = np.nonzero(truth > 0)
-        X = pose.unproject(cam.K, np.stack([u + 0.5, v + 0.5], 1), truth[v, u])
-        wall = np.zeros_like(truth, bool)
-        wall[v, u] = (X[:, 2] > 0.05) & (X[:, 2] < BOX[1][2] - 0.05)  # the walls' pixels
+        truth, wall = _box_walls(cam, pose)
         assert wall.mean() > 0.15
 
         def within_1pct(conf: dict, pose=pose, truth=truth, wall=wall) -> float:
@@ -268,11 +274,7 @@ def test_a_roof_with_a_low_structure_on_it_still_gets_its_walls():
     P = np.concatenate([P, *unit])
     cam = Camera("PINHOLE", 320, 240, [260.0, 260.0, 160.0, 120.0])
     pose = look_at(np.array((0.0, -16.0, 1.5)), np.array((0.0, -4.0, 2.0)))
-    truth = _box_depth(cam, pose)
-    v, u = np.nonzero(truth > 0)
-    X = pose.unproject(cam.K, np.stack([u + 0.5, v + 0.5], 1), truth[v, u])
-    wall = np.zeros_like(truth, bool)
-    wall[v, u] = (X[:, 2] > 0.05) & (X[:, 2] < BOX[1][2] - 0.05)
+    truth, wall = _box_walls(cam, pose)
 
     def within_1pct(conf: dict) -> float:
         d = PlaneProxy.from_points(P, {"inlier_m": 0.12, "roof_walls": True, **conf}).depth(cam, pose)

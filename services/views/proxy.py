@@ -371,9 +371,7 @@ def roof_walls(planes: list[Plane], P: np.ndarray, terrain: Terrain, conf: dict)
     return walls
 
 
-def _open_above(
-    roof: Plane, contour: np.ndarray, P: np.ndarray, tree: cKDTree, clutter_m: float = 1.0
-) -> bool:
+def _open_above(roof: Plane, contour: np.ndarray, P: np.ndarray, tree: cKDTree, clutter_m: float) -> bool:
     """Whether nothing stands on the horizontal plane `roof` within its outline `contour` (cells): at
     most 30% of the sparse points P (N, 3) over it lie more than clutter_m above it (a balcony or a
     canopy has its facade's points above it; a roof has the sky, and what stands on it is low)."""
