@@ -162,3 +162,35 @@ def test_views_through_the_true_depth_are_coloured_from_the_aerial_images(tiny_s
         seen = depth > 0
         assert seen.mean() > 0.5 and (rgb[seen] > 0).any(-1).mean() > 0.8  # not the black fallback
         assert np.corrcoef(rgb[seen].ravel(), true_rgb[seen].ravel())[0, 1] > 0.4
+
+
+def test_a_view_across_the_plane_from_the_sources_takes_their_colour_through_its_normal(plane_survey):
+    """A view 2 m over the plane, looking along it: source B sees the same points about 100 degrees off
+    the view's rays (beyond max_angle_deg), but 20 degrees off the plane's normal. Through the depth map's
+    normal B is admitted, so the two sources colour the view where both see the plane, in place; with the
+    ray angle alone only A is, and the two-source consistency leaves the view to the fallback."""
+    from services.views.source_colour import surface_normals
+
+    root, tex, _, poses = plane_survey
+    view_cam = Camera("PINHOLE", 200, 150, [190.0, 190.0, 100.0, 75.0])
+    view = look_at(np.array([0.0, -30.0, 2.0]), np.array([0.0, 0.0, 0.0]))
+    depth = _plane_depth(view_cam, view)
+    normals = surface_normals(view_cam, view, depth, 0.01)
+    known = np.isfinite(normals[..., 0])
+    assert known[1:-1, 1:-1][depth[1:-1, 1:-1] > 0].mean() > 0.95 and not known[depth == 0].any()
+    np.testing.assert_allclose(normals[known], np.tile([0.0, 0.0, 1.0], (known.sum(), 1)), atol=1e-4)
+    fallback = np.zeros((150, 200, 3), np.uint8)
+    depth_fn = lambda c, p: _plane_depth(c, p)  # noqa: E731
+    by_ray = SourceImages(root / "sparse", root / "images", {"max_incidence_deg": None})
+    ray_only = by_ray.colour(view_cam, view, depth, fallback, depth_fn)[2]["source_fraction"]
+    src = SourceImages(root / "sparse", root / "images")
+    rgb, _, stats = src.colour(view_cam, view, depth, fallback, depth_fn)
+    # both sources see about a tenth of the view (the textured square's near part)
+    assert stats["source_fraction"] > 0.05 and stats["source_fraction"] > 20 * ray_only
+    assert stats["sources_used"] == 2
+    truth = cv2.warpPerspective(tex, _plane_homography(view_cam, view), (200, 150), flags=cv2.INTER_LINEAR)
+    truth = cv2.cvtColor(truth, cv2.COLOR_BGR2RGB)
+    has = (rgb > 0).any(axis=2)
+    err = np.abs(rgb.astype(float) - truth.astype(float)).mean(axis=2)[has]
+    shifted = np.abs(rgb.astype(float) - np.roll(truth, 2, axis=1).astype(float)).mean(axis=2)[has]
+    assert np.median(err) < 0.5 * np.median(shifted), (np.median(err), np.median(shifted))

@@ -41,7 +41,13 @@ confs: dict[str, dict[str, Any]] = {
         "visibility_abs_m": 0.3,
         "depth_width": 480,  # width of the sources' 3DGS depth maps (visibility only)
         "resolution_weight_deg": 10.0,  # penalty per doubling of the source's ground sampling distance
-        "max_angle_deg": 75.0,  # a source more than this off the view's ray is not used
+        "max_angle_deg": 75.0,  # a source more than this off the view's ray is not used ...
+        # ... unless the view's depth is a smooth surface there (its normal known from the depth map) that
+        # the source sees at most this far from its normal: a plane's colour is where any camera that
+        # sees it puts it, so a view at street level looking up at a facade the aerial images see from
+        # above (ray angles of 100-140 degrees) takes its colour from them (None: the ray angle only)
+        "max_incidence_deg": 75.0,
+        "normal_tolerance": 0.01,  # a pixel's normal is known where the surface is planar (surface_normals)
         # the two best sources must agree on a point's colour (mean absolute difference over 7x7 pixels
         # below this many grey levels): where the 3DGS's depth is off they see different surfaces
         "consistency": 12.0,
@@ -73,6 +79,32 @@ def _two_best(n: int, scored: list[tuple[int, np.ndarray, np.ndarray]]) -> tuple
         best[w], best_i[w] = pen[win], si
         second[m], second_i[m] = pen[mid], si
     return best_i, second_i
+
+
+def surface_normals(camera: Camera, pose: Pose, depth: np.ndarray, tolerance: float) -> np.ndarray:
+    """Unit normals (H, W, 3) float32 in the world frame of the surface a z-depth map (H, W) shows,
+    facing its camera; NaN where the surface is not locally planar. A plane's inverse depth is affine in
+    the pixel coordinates, at any angle: a pixel is planar where its own and its four neighbours' depths
+    exist and the second difference of the inverse depth along each axis is within `tolerance` of its
+    inverse depth (not at edges, the image border or where there is no depth)."""
+    H, W = depth.shape
+    out = np.full((H, W, 3), np.nan, np.float32)
+    if H < 3 or W < 3:
+        return out
+    d = depth.astype(np.float64)
+    inv = np.where(d > 0, 1.0 / np.maximum(d, 1e-12), np.nan)
+    c = inv[1:-1, 1:-1]
+    with np.errstate(invalid="ignore"):  # NaN (no depth) fails the test
+        planar = (np.abs(inv[1:-1, :-2] + inv[1:-1, 2:] - 2 * c) <= tolerance * c) & (
+            np.abs(inv[:-2, 1:-1] + inv[2:, 1:-1] - 2 * c) <= tolerance * c
+        )
+    v, u = np.mgrid[0:H, 0:W]
+    X = pose.unproject(camera.K, np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1), d.ravel()).reshape(H, W, 3)
+    n = np.cross(X[1:-1, 2:] - X[1:-1, :-2], X[2:, 1:-1] - X[:-2, 1:-1])
+    n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-12)
+    n *= np.where(np.einsum("ijk,ijk->ij", n, pose.center - X[1:-1, 1:-1]) < 0, -1.0, 1.0)[..., None]
+    out[1:-1, 1:-1] = np.where(planar[..., None], n, np.nan)
+    return out
 
 
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray, cols: int = 4096) -> np.ndarray:
@@ -248,18 +280,29 @@ class SourceImages:
 
     # -- colour ----------------------------------------------------------------------------------
     def score(
-        self, src: dict, X: np.ndarray, ray_v: np.ndarray, depth_fn: DepthFn | None
+        self,
+        src: dict,
+        X: np.ndarray,
+        ray_v: np.ndarray,
+        depth_fn: DepthFn | None,
+        normal: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The points X (N, 3) the source sees (in its image, within max_angle_deg of the view's rays
-        ray_v (N, 3), not hidden in its 3DGS depth unless depth_fn is None): (indices, pixels, penalties,
-        metres per pixel)."""
+        ray_v (N, 3), or with a `normal` (N, 3; NaN: unknown, see surface_normals) within
+        max_incidence_deg of it; not hidden in its 3DGS depth unless depth_fn is None): (indices, pixels,
+        penalties, metres per pixel)."""
         c = self.conf
         idx, uv, z = self.inside(src, X)
         if len(idx) == 0:
             return idx, uv, z, z
         ray_s = X[idx] - src["pose"].center.astype(X.dtype)
-        cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx]) / np.sqrt(np.einsum("ij,ij->i", ray_s, ray_s))
+        norm_s = np.sqrt(np.einsum("ij,ij->i", ray_s, ray_s))
+        cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx]) / norm_s
         ok = cosang >= np.cos(np.radians(float(c["max_angle_deg"])))
+        if normal is not None and c["max_incidence_deg"] is not None:
+            # the normal faces the view: a source that sees the surface from its side has -ray_s . n > 0
+            cos_inc = -np.einsum("ij,ij->i", ray_s, normal[idx]) / norm_s
+            ok |= cos_inc >= np.cos(np.radians(float(c["max_incidence_deg"])))  # NaN: False
         if depth_fn is not None:
             ds = self.depth_at(src, uv, depth_fn)
             ok &= (ds > 0) & (z <= ds * (1.0 + float(c["visibility_rel"])) + float(c["visibility_abs_m"]))
@@ -298,15 +341,16 @@ class SourceImages:
         ray_v = X - pose.center.astype(np.float32)
         ray_v /= np.linalg.norm(ray_v, axis=1, keepdims=True)
         gsd_v = depth[vi, ui] / camera.K[0, 0]  # metres per view pixel (at the point, along the axis)
+        normal = surface_normals(camera, pose, depth, float(self.conf["normal_tolerance"]))[vi, ui]
         n = len(X)
         # the candidates: sources that are the best or second best for some of a sparse sample of the points
         step = max(1, n // 4000)
         probe = [
-            (si, *self.score(src, X[::step], ray_v[::step], depth_fn)[::2])
+            (si, *self.score(src, X[::step], ray_v[::step], depth_fn, normal[::step])[::2])
             for si, src in enumerate(self.sources)
         ]
         chosen = sorted({int(i) for i in np.concatenate(_two_best(len(X[::step]), probe)) if i >= 0})
-        scored = {si: self.score(self.sources[si], X, ray_v, depth_fn) for si in chosen}
+        scored = {si: self.score(self.sources[si], X, ray_v, depth_fn, normal) for si in chosen}
         best_i, second_i = _two_best(n, [(si, idx, pen) for si, (idx, _, pen, _) in scored.items()])
         scored = {si: (idx, uv, gsd / gsd_v[idx]) for si, (idx, uv, _, gsd) in scored.items()}
         first_rgb = np.zeros((n, 3), np.float32)
