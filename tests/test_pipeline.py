@@ -41,7 +41,7 @@ def tiny_job(tiny_scene, tmp_path_factory):
         tiny_scene / "cameras.json",
         options={
             "view_planner": "ground-aware",
-            "views_per_ground_image": 3,
+            "views_per_ground_image": 4,
             "matcher": "sift",
             "max_keypoints": 1024,
             "splat_steps": 100,  # the optional splat_all stage (test_splat_on_all_images)

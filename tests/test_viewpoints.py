@@ -119,9 +119,9 @@ def test_ground_aware_planner():
         assert v.planner == "ground-aware"
         # it looks at its target
         assert principal_point_error(v.camera, v.pose, v.target) < 1e-6
-        # between the ground camera and the aerial cameras in height, and above its ground camera
+        # between the ground camera and the aerial cameras in height, at or above its ground camera
         z_g = ground[v.source].center[2]
-        assert z_g < v.center[2] < z_aerial
+        assert z_g - 1e-9 <= v.center[2] < z_aerial
         assert v.center[2] - z_g == pytest.approx(v.meta["height_m"])
         # its own ground image first among the candidates; oblique aerial candidates only
         assert v.ground[0] == v.source
@@ -329,9 +329,13 @@ def test_ground_aware_views_look_at_another_point_when_the_target_is_hidden_from
     not that target. Its views then look at another point of what it sees (surface_targets), in view."""
     g = pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)  # looking north at the wall, the target under the roof
     scene = make_scene({"ground/G0001.jpg": g})
-    # the default placements but aerial30, whose line of sight passes the roof 0.86 of the way to the
-    # target: within occlusion_ratio 0.85 of it, not occluded
-    places = [p for p in vp.confs["ground-aware"]["ground"]["placements"] if p != [30.0, "aerial"]]
+    # the default placements above the camera but aerial30, whose line of sight passes the roof 0.86 of
+    # the way to the target: within occlusion_ratio 0.85 of it, not occluded ("at" sees under the roof)
+    places = [
+        p
+        for p in vp.confs["ground-aware"]["ground"]["placements"]
+        if p not in ([30.0, "aerial"], [0.0, "at"])
+    ]
     conf = merge_conf(
         vp.confs["ground-aware"], {"views_per_ground_image": 2, "ground": {"placements": places}}
     )
@@ -356,6 +360,29 @@ def test_ground_aware_views_look_at_another_point_when_the_target_is_hidden_from
     assert len(targets) > 5 and np.allclose(targets[0], T, atol=0.2)  # the principal point's first
     scene.depth_fn = None
     assert vp.surface_targets("ground/G0001.jpg", scene, conf) == []
+
+
+def test_a_view_at_the_ground_camera_sees_its_target_under_the_arcade():
+    """Placement "at": the view stands at the ground camera's centre, even below the terrain's height plus
+    a metre (a walker's camera on a street lower than the rest), and looks at its target: under the
+    arcade's roof, which hides it from every placement above."""
+    g = pose_ypr([0.0, -15.0, 1.6], 0.0, 0.0)
+    scene = make_scene({"ground/G0001.jpg": g})
+    scene.depth_fn = arcade_raycast
+    conf = merge_conf(
+        vp.confs["ground-aware"],
+        {"views_per_ground_image": 1, "ground": {"placements": [[0.0, "at"], [10.0, "above"]]}},
+    )
+    (view,) = vp.plan(scene, conf)
+    assert view.name == "G-G0001-at00" and view.meta["target_from"] == "depth"
+    np.testing.assert_allclose(view.center, g.center, atol=1e-9)
+    assert np.allclose(view.target, [0.0, 0.0, 1.6], atol=0.2) and view.meta["covisible"] > 0.95
+    assert principal_point_error(view.camera, view.pose, view.target) < 1e-6
+    scene.terrain_z = 1.0  # the camera 0.6 m above it: "at" stays, "above" (0 m) needs a metre
+    both = merge_conf(
+        conf, {"views_per_ground_image": 2, "ground": {"placements": [[0.0, "at"], [0.0, "above"]]}}
+    )
+    assert [v.name for v in vp.plan(scene, both)] == ["G-G0001-at00"]
 
 
 def test_ground_aware_views_without_aerial_candidates():

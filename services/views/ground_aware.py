@@ -96,7 +96,7 @@ def _placements(
     anchors = [n for _, n in aerial_candidates(probe, scene, {**conf["candidates"], "skip_nadir": True})]
     out, weak = [], []  # weak: unoccluded but below min_cov, (covisible fraction, view)
     for height, placement in gc["placements"]:
-        if placement == "above":
+        if placement in ("at", "above"):  # "at": the ground camera itself, whatever the terrain's height
             C = C_g + np.array([0.0, 0.0, height])
         elif placement == "back":
             C = C_g + height * back + np.array([0.0, 0.0, height])
@@ -109,8 +109,8 @@ def _placements(
                 continue
             C = C_g + (height / dz) * (A - C_g)
         else:
-            raise ValueError(f"unknown placement {placement!r} (above, back, aerial)")
-        if np.linalg.norm(T - C) < 2.0 or C[2] < scene.terrain_z + 1.0:
+            raise ValueError(f"unknown placement {placement!r} (at, above, back, aerial)")
+        if np.linalg.norm(T - C) < 2.0 or (placement != "at" and C[2] < scene.terrain_z + 1.0):
             continue
         if scene.occluded(C, T, cam, gc["occlusion_ratio"]):
             logger.debug("%s %s %.0f m: the target is occluded", g, placement, height)
