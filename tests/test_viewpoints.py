@@ -378,6 +378,12 @@ def test_a_view_at_the_ground_camera_sees_its_target_under_the_arcade():
     np.testing.assert_allclose(view.center, g.center, atol=1e-9)
     assert np.allclose(view.target, [0.0, 0.0, 1.6], atol=0.2) and view.meta["covisible"] > 0.95
     assert principal_point_error(view.camera, view.pose, view.target) < 1e-6
+    # a surface the depth probe puts between the camera and its target (a CPU 3DGS's floater at the
+    # street) hides it from every placement but "at", whose line of sight is the ground camera's own
+    scene.occluded = lambda *a: True
+    assert [v.name for v in vp.plan(scene, merge_conf(conf, {"views_per_ground_image": 2}))] == [
+        "G-G0001-at00"
+    ]
     scene.terrain_z = 1.0  # the camera 0.6 m above it: "at" stays, "above" (0 m) needs a metre
     both = merge_conf(
         conf, {"views_per_ground_image": 2, "ground": {"placements": [[0.0, "at"], [0.0, "above"]]}}

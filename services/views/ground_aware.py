@@ -112,7 +112,8 @@ def _placements(
             raise ValueError(f"unknown placement {placement!r} (at, above, back, aerial)")
         if np.linalg.norm(T - C) < 2.0 or (placement != "at" and C[2] < scene.terrain_z + 1.0):
             continue
-        if scene.occluded(C, T, cam, gc["occlusion_ratio"]):
+        # "at" looks along the ground camera's own line of sight: what hides its target there is a floater
+        if placement != "at" and scene.occluded(C, T, cam, gc["occlusion_ratio"]):
             logger.debug("%s %s %.0f m: the target is occluded", g, placement, height)
             continue
         pose = look_at(C, T)
