@@ -42,10 +42,10 @@ confs: dict[str, dict[str, Any]] = {
         "depth_width": 480,  # width of the sources' 3DGS depth maps (visibility only)
         "resolution_weight_deg": 10.0,  # penalty per doubling of the source's ground sampling distance
         "max_angle_deg": 75.0,  # a source more than this off the view's ray is not used ...
-        # ... unless the view's depth is a smooth surface there (its normal known from the depth map) that
-        # the source sees at most this far from its normal: a plane's colour is where any camera that
+        # ... unless the view's depth is planar there (its normal known from the depth map) and the
+        # source sees it at most this far from its normal: a plane's colour is where any camera that
         # sees it puts it, so a view at street level looking up at a facade the aerial images see from
-        # above (ray angles of 100-140 degrees) takes its colour from them (None: the ray angle only)
+        # above (ray angles of 100-140 degrees) takes its colour from them (0 or None: the ray angle only)
         "max_incidence_deg": 75.0,
         "normal_tolerance": 0.01,  # a pixel's normal is known where the surface is planar (surface_normals)
         # the two best sources must agree on a point's colour (mean absolute difference over 7x7 pixels
@@ -299,7 +299,7 @@ class SourceImages:
         norm_s = np.sqrt(np.einsum("ij,ij->i", ray_s, ray_s))
         cosang = np.einsum("ij,ij->i", ray_s, ray_v[idx]) / norm_s
         ok = cosang >= np.cos(np.radians(float(c["max_angle_deg"])))
-        if normal is not None and c["max_incidence_deg"] is not None:
+        if normal is not None and c["max_incidence_deg"]:
             # the normal faces the view: a source that sees the surface from its side has -ray_s . n > 0
             cos_inc = -np.einsum("ij,ij->i", ray_s, normal[idx]) / norm_s
             ok |= cos_inc >= np.cos(np.radians(float(c["max_incidence_deg"])))  # NaN: False
@@ -341,12 +341,21 @@ class SourceImages:
         ray_v = X - pose.center.astype(np.float32)
         ray_v /= np.linalg.norm(ray_v, axis=1, keepdims=True)
         gsd_v = depth[vi, ui] / camera.K[0, 0]  # metres per view pixel (at the point, along the axis)
-        normal = surface_normals(camera, pose, depth, float(self.conf["normal_tolerance"]))[vi, ui]
+        normal = (
+            surface_normals(camera, pose, depth, float(self.conf["normal_tolerance"]))[vi, ui]
+            if self.conf["max_incidence_deg"]
+            else None
+        )
         n = len(X)
         # the candidates: sources that are the best or second best for some of a sparse sample of the points
         step = max(1, n // 4000)
         probe = [
-            (si, *self.score(src, X[::step], ray_v[::step], depth_fn, normal[::step])[::2])
+            (
+                si,
+                *self.score(
+                    src, X[::step], ray_v[::step], depth_fn, None if normal is None else normal[::step]
+                )[::2],
+            )
             for si, src in enumerate(self.sources)
         ]
         chosen = sorted({int(i) for i in np.concatenate(_two_best(len(X[::step]), probe)) if i >= 0})
