@@ -76,6 +76,37 @@ def ground_view_candidates(g: str, scene: Scene, conf: dict) -> list[ViewSpec]:
     return out
 
 
+# what each placement checks: "above_terrain", its centre at least 1 m above the terrain; "occlusion_probe",
+# its line of sight to the target free in the scene's depth. "at" is the ground camera itself: it stands
+# where the ground camera stands, whatever the terrain's height, and what hides its target along the ground
+# camera's own line of sight is a floater of the 3DGS
+PLACEMENT_RULES: dict[str, dict[str, bool]] = {
+    "at": {"above_terrain": False, "occlusion_probe": False},
+    "above": {"above_terrain": True, "occlusion_probe": True},
+    "back": {"above_terrain": True, "occlusion_probe": True},
+    "aerial": {"above_terrain": True, "occlusion_probe": True},
+}
+
+
+def _placement_center(
+    placement: str, height: float, C_g: np.ndarray, back: np.ndarray, anchors: list[str], scene: Scene
+) -> np.ndarray | None:
+    """The centre of a placement `height` metres above ground camera centre C_g: "at" and "above"
+    straight above it, "back" along the horizontal unit vector `back` by the height too (45 degrees),
+    "aerial" on the segment to the first anchor aerial camera (None without one or below the height)."""
+    if placement in ("at", "above"):
+        return C_g + np.array([0.0, 0.0, height])
+    if placement == "back":
+        return C_g + height * back + np.array([0.0, 0.0, height])
+    if placement == "aerial":
+        if not anchors:
+            return None
+        A = scene.aerial_poses[anchors[0]].center
+        dz = A[2] - C_g[2]
+        return None if dz <= height else C_g + (height / dz) * (A - C_g)
+    raise ValueError(f"unknown placement {placement!r} ({', '.join(PLACEMENT_RULES)})")
+
+
 def _placements(
     g: str, T: np.ndarray, how: str, surface: np.ndarray | None, scene: Scene, conf: dict
 ) -> tuple[list[ViewSpec], list[tuple[float, ViewSpec]]]:
@@ -96,24 +127,13 @@ def _placements(
     anchors = [n for _, n in aerial_candidates(probe, scene, {**conf["candidates"], "skip_nadir": True})]
     out, weak = [], []  # weak: unoccluded but below min_cov, (covisible fraction, view)
     for height, placement in gc["placements"]:
-        if placement in ("at", "above"):  # "at": the ground camera itself, whatever the terrain's height
-            C = C_g + np.array([0.0, 0.0, height])
-        elif placement == "back":
-            C = C_g + height * back + np.array([0.0, 0.0, height])
-        elif placement == "aerial":
-            if not anchors:
-                continue
-            A = scene.aerial_poses[anchors[0]].center
-            dz = A[2] - C_g[2]
-            if dz <= height:
-                continue
-            C = C_g + (height / dz) * (A - C_g)
-        else:
-            raise ValueError(f"unknown placement {placement!r} (at, above, back, aerial)")
-        if np.linalg.norm(T - C) < 2.0 or (placement != "at" and C[2] < scene.terrain_z + 1.0):
+        C = _placement_center(placement, height, C_g, back, anchors, scene)
+        if C is None or np.linalg.norm(T - C) < 2.0:
             continue
-        # "at" looks along the ground camera's own line of sight: what hides its target there is a floater
-        if placement != "at" and scene.occluded(C, T, cam, gc["occlusion_ratio"]):
+        rules = PLACEMENT_RULES[placement]
+        if rules["above_terrain"] and C[2] < scene.terrain_z + 1.0:
+            continue
+        if rules["occlusion_probe"] and scene.occluded(C, T, cam, gc["occlusion_ratio"]):
             logger.debug("%s %s %.0f m: the target is occluded", g, placement, height)
             continue
         pose = look_at(C, T)

@@ -81,12 +81,23 @@ def _two_best(n: int, scored: list[tuple[int, np.ndarray, np.ndarray]]) -> tuple
     return best_i, second_i
 
 
-def surface_normals(camera: Camera, pose: Pose, depth: np.ndarray, tolerance: float) -> np.ndarray:
+def pixel_points(camera: Camera, pose: Pose, depth: np.ndarray) -> np.ndarray:
+    """World points (H, W, 3) float64 of the pixel centres (COLMAP convention) of a z-depth map (H, W)."""
+    H, W = depth.shape
+    v, u = np.mgrid[0:H, 0:W]
+    uv = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1)
+    return pose.unproject(camera.K, uv, depth.astype(np.float64).ravel()).reshape(H, W, 3)
+
+
+def surface_normals(
+    camera: Camera, pose: Pose, depth: np.ndarray, tolerance: float, points: np.ndarray | None = None
+) -> np.ndarray:
     """Unit normals (H, W, 3) float32 in the world frame of the surface a z-depth map (H, W) shows,
     facing its camera; NaN where the surface is not locally planar. A plane's inverse depth is affine in
     the pixel coordinates, at any angle: a pixel is planar where its own and its four neighbours' depths
     exist and the second difference of the inverse depth along each axis is within `tolerance` of its
-    inverse depth (not at edges, the image border or where there is no depth)."""
+    inverse depth (not at edges, the image border or where there is no depth). `points`: the map's
+    pixel_points where the caller has them."""
     H, W = depth.shape
     out = np.full((H, W, 3), np.nan, np.float32)
     if H < 3 or W < 3:
@@ -98,8 +109,7 @@ def surface_normals(camera: Camera, pose: Pose, depth: np.ndarray, tolerance: fl
         planar = (np.abs(inv[1:-1, :-2] + inv[1:-1, 2:] - 2 * c) <= tolerance * c) & (
             np.abs(inv[:-2, 1:-1] + inv[2:, 1:-1] - 2 * c) <= tolerance * c
         )
-    v, u = np.mgrid[0:H, 0:W]
-    X = pose.unproject(camera.K, np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1), d.ravel()).reshape(H, W, 3)
+    X = pixel_points(camera, pose, depth) if points is None else points
     n = np.cross(X[1:-1, 2:] - X[1:-1, :-2], X[2:, 1:-1] - X[:-2, 1:-1])
     n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-12)
     n *= np.where(np.einsum("ijk,ijk->ij", n, pose.center - X[1:-1, 1:-1]) < 0, -1.0, 1.0)[..., None]
@@ -336,16 +346,17 @@ class SourceImages:
         if not (depth > 0).any():
             return fallback, depth, {"source_fraction": 0.0, "sources_used": 0}
         vi, ui = np.nonzero(depth > 0)
-        uv_v = np.stack([ui + 0.5, vi + 0.5], 1).astype(np.float64)  # pixel centres, COLMAP convention
-        X = pose.unproject(camera.K, uv_v, depth[vi, ui].astype(float)).astype(np.float32)
+        normal = None
+        if self.conf["max_incidence_deg"]:  # the normals need every pixel's point: unprojected once
+            grid = pixel_points(camera, pose, depth)
+            normal = surface_normals(camera, pose, depth, float(self.conf["normal_tolerance"]), grid)[vi, ui]
+            X = grid[vi, ui].astype(np.float32)
+        else:
+            uv_v = np.stack([ui + 0.5, vi + 0.5], 1).astype(np.float64)  # pixel centres, COLMAP convention
+            X = pose.unproject(camera.K, uv_v, depth[vi, ui].astype(float)).astype(np.float32)
         ray_v = X - pose.center.astype(np.float32)
         ray_v /= np.linalg.norm(ray_v, axis=1, keepdims=True)
         gsd_v = depth[vi, ui] / camera.K[0, 0]  # metres per view pixel (at the point, along the axis)
-        normal = (
-            surface_normals(camera, pose, depth, float(self.conf["normal_tolerance"]))[vi, ui]
-            if self.conf["max_incidence_deg"]
-            else None
-        )
         n = len(X)
         # the candidates: sources that are the best or second best for some of a sparse sample of the points
         step = max(1, n // 4000)
