@@ -8,6 +8,15 @@ standard deviation of the camera centre along its worst direction.
     std_m = position_std(pose, camera.K, X, sigma_px=1.0)
     std_m = fit_position_std(pose, camera.K, kp, X)  # pixel noise: the fit's RMS residual, >= 1 px
 
+Points whose depth comes from a rendered view's surface (lifted by its depth, or triangulated with one
+aerial ray, which crosses the view's ray where the view took that pixel's colour) share that surface's
+error: all a few percent too near or too far from the view's centre. Scaling points about a centre moves
+a camera that sees them along the line from that centre, by the same fraction of its distance: a ground
+image placed through a view 50 m away on points 10% too far lands 5 m off, its pixels fitted as well.
+`DepthScale` makes each such view's scale a nuisance parameter with a prior:
+
+    std_m = fit_position_std(pose, K, kp, X, scale=DepthScale(centres, 0.05))  # NaN rows: independent
+
 For images of a reconstruction whose points are themselves estimated (a run of ground images tied by
 their own points), the covariance of the whole bundle adjustment tells instead:
 
@@ -15,6 +24,8 @@ their own points), the covariance of the whole bundle adjustment tells instead:
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import pycolmap
@@ -35,11 +46,20 @@ def _skew(v: np.ndarray) -> np.ndarray:
     )
 
 
-def projection_jacobian(pose: Pose, K: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """d(pixel)/d(centre, rotation) of the projections of points X (n, 3): (2n, 6). The rotation is a
-    small turn w of the camera frame, cam_from_world R = exp([w]x) R."""
-    X = np.asarray(X, float).reshape(-1, 3)
-    xc = (pose.R @ (X - pose.center).T).T  # (n, 3) camera coordinates
+@dataclass(frozen=True)
+class DepthScale:
+    """The points' shared depth errors: `centres` (n, 3), the centre of the view whose rendered surface
+    gave each point its depth (NaN rows: a point independent of any view's surface, e.g. seen by two
+    aerial images); the points of one centre scale together about it, by a factor 1 + e with e of
+    standard deviation `std` (relative)."""
+
+    centres: np.ndarray
+    std: float
+
+
+def _camera_jacobian(pose: Pose, K: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(d(pixel)/d(camera coordinates) (n, 2, 3), camera coordinates (n, 3)) of points X (n, 3)."""
+    xc = (pose.R @ (X - pose.center).T).T
     x, y, z = xc[:, 0], xc[:, 1], xc[:, 2]
     fx, fy = K[0, 0], K[1, 1]
     dproj = np.zeros((len(X), 2, 3))
@@ -47,31 +67,70 @@ def projection_jacobian(pose: Pose, K: np.ndarray, X: np.ndarray) -> np.ndarray:
     dproj[:, 0, 2] = -fx * x / z**2
     dproj[:, 1, 1] = fy / z
     dproj[:, 1, 2] = -fy * y / z**2
+    return dproj, xc
+
+
+def depth_scale_jacobian(pose: Pose, K: np.ndarray, X: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """d(pixel)/d(e) of the projections of points X (n, 3) for each distinct finite row of `centres`
+    (n, 3) (a group): X -> C + (1 + e)(X - C) for the points of group C. (2n, groups)."""
+    X = np.asarray(X, float).reshape(-1, 3)
+    centres = np.asarray(centres, float).reshape(-1, 3)
+    finite = np.isfinite(centres).all(1)
+    groups = np.unique(centres[finite], axis=0)
+    dproj, _ = _camera_jacobian(pose, K, X)
+    d_pix = np.einsum("nij,jk,nk->ni", dproj, pose.R, np.where(finite[:, None], X - centres, 0.0))
+    E = np.zeros((len(X), 2, len(groups)))
+    for k, c in enumerate(groups):
+        m = finite & (centres == c).all(1)
+        E[m, :, k] = d_pix[m]
+    return E.reshape(2 * len(X), len(groups))
+
+
+def projection_jacobian(pose: Pose, K: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """d(pixel)/d(centre, rotation) of the projections of points X (n, 3): (2n, 6). The rotation is a
+    small turn w of the camera frame, cam_from_world R = exp([w]x) R."""
+    X = np.asarray(X, float).reshape(-1, 3)
+    dproj, xc = _camera_jacobian(pose, K, X)
     d_center = np.broadcast_to(-pose.R, (len(X), 3, 3))
     d_rot = -_skew(xc)
     J = np.concatenate([dproj @ d_center, dproj @ d_rot], 2)  # (n, 2, 6)
     return J.reshape(-1, 6)
 
 
-def pose_covariance(pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0) -> np.ndarray:
-    """Covariance (6, 6) of (centre in metres, rotation in radians); inf where undetermined."""
+def pose_covariance(
+    pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0, scale: DepthScale | None = None
+) -> np.ndarray:
+    """Covariance (6, 6) of (centre in metres, rotation in radians); inf where undetermined. With
+    `scale`, each group's depth scale is a nuisance parameter of prior std scale.std, marginalized."""
     J = projection_jacobian(pose, K, X)
+    if scale is not None and scale.std > 0:
+        E = depth_scale_jacobian(pose, K, X, scale.centres)
+        J = np.concatenate([J, E], 1)
     H = J.T @ J
+    if scale is not None and scale.std > 0:  # the prior, in units of the pixel noise
+        H[6:, 6:] += np.eye(len(H) - 6) * (sigma_px / scale.std) ** 2
     if len(X) < 3 or np.linalg.cond(H) > 1e15:
         return np.full((6, 6), np.inf)
-    return sigma_px**2 * np.linalg.inv(H)
+    return sigma_px**2 * np.linalg.inv(H)[:6, :6]
 
 
-def position_std(pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0) -> float:
+def position_std(
+    pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0, scale: DepthScale | None = None
+) -> float:
     """Standard deviation (m) of the camera centre along its least determined direction."""
-    cov = pose_covariance(pose, K, X, sigma_px)
+    cov = pose_covariance(pose, K, X, sigma_px, scale)
     if not np.isfinite(cov).all():
         return float("inf")
     return float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
 
 
 def fit_position_std(
-    pose: Pose, K: np.ndarray, kp: np.ndarray, X: np.ndarray, min_sigma_px: float = 1.0
+    pose: Pose,
+    K: np.ndarray,
+    kp: np.ndarray,
+    X: np.ndarray,
+    min_sigma_px: float = 1.0,
+    scale: DepthScale | None = None,
 ) -> float:
     """position_std with the pixel noise taken from the fit itself: the RMS distance of the points'
     projections to their keypoints kp (n, 2), at least min_sigma_px; inf for fewer than 3 points."""
@@ -80,7 +139,7 @@ def fit_position_std(
         return float("inf")
     uv, _ = pose.project(K, X)
     sigma = max(float(np.sqrt(np.mean(np.sum((uv - np.asarray(kp, float)) ** 2, 1)))), min_sigma_px)
-    return position_std(pose, K, X, sigma)
+    return position_std(pose, K, X, sigma, scale)
 
 
 def held_adjustment(

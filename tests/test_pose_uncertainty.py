@@ -10,7 +10,13 @@ from services import reduce as transfer
 from services.colmap_model import Camera, Pose
 from services.conf import merge_conf
 from services.geometry import look_at
-from services.pose_uncertainty import fit_position_std, position_std, projection_jacobian
+from services.pose_uncertainty import (
+    DepthScale,
+    depth_scale_jacobian,
+    fit_position_std,
+    position_std,
+    projection_jacobian,
+)
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
 POSE = look_at(np.array([0.0, 0.0, 1.7]), np.array([0.0, 20.0, 4.0]))
@@ -95,3 +101,50 @@ def test_a_consensus_of_few_inliers_verifies_matches_but_gives_no_pose():
     assert not r.accepted and "too few for a pose" in r.reason
     kp, X = _points(rng, (50, 970), (50, 720), n=25)
     assert transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), transfer.default_conf).accepted
+
+
+def test_depth_scale_jacobian_matches_finite_differences():
+    """Two groups of points scaled about their views' centres, one point independent (NaN centre)."""
+    rng = np.random.default_rng(6)
+    _, X = _points(rng, (0, 1024), (0, 768), 9)
+    centres = np.repeat([[30.0, -10.0, 8.0], [-5.0, 2.0, 20.0], [np.nan] * 3], 3, axis=0)
+    E = depth_scale_jacobian(POSE, CAM.K, X, centres)
+    assert E.shape == (18, 2)
+
+    def project(e: np.ndarray) -> np.ndarray:
+        groups = {tuple(c): k for k, c in enumerate(np.unique(centres[:6], axis=0))}
+        Y = X.copy()
+        for i in range(6):
+            Y[i] = centres[i] + (1 + e[groups[tuple(centres[i])]]) * (X[i] - centres[i])
+        return POSE.project(CAM.K, Y)[0].reshape(-1)
+
+    num = np.stack([(project(d * 1e-6) - project(-d * 1e-6)) / 2e-6 for d in np.eye(2)], 1)
+    assert np.allclose(E, num, rtol=1e-4, atol=1e-3)
+    assert np.all(E[12:] == 0)
+
+
+def test_a_pose_through_a_distant_views_surface_counts_its_depth_scale():
+    """Points that take their depth from a view 40 m away, all 10% too far from it (a surface off by
+    that much): the camera that sees them as the ground camera sees the true points stands 10% of 40 m
+    away, fits them exactly and its plain covariance says centimetres. With the view's depth scale a
+    nuisance (5%) the pose is ill-determined and not accepted; the same points from two aerial images
+    (independent of the view) or through a view at the camera itself are accepted."""
+    rng = np.random.default_rng(7)
+    kp, X = _points(rng, (50, 970), (50, 720))
+    view = POSE.center + np.array([40.0, 0.0, 0.0])
+    X_off = view + 1.1 * (X - view)
+    shifted = Pose.from_center(POSE.R.T, view + 1.1 * (POSE.center - view))
+    assert np.allclose(shifted.project(CAM.K, X_off)[0], kp, atol=1e-6)
+    conf = transfer.default_conf
+    plain = transfer.estimate_ground_pose(kp, X_off, CAM, POSE, (2.5, 4.0, 2.0), conf)
+    assert np.linalg.norm(np.asarray(plain.center) - POSE.center) > 3.5
+    assert plain.accepted and plain.position_std_m < 0.1  # what the reducer did before
+    centres = np.repeat(view[None], len(X), 0)
+    r = transfer.estimate_ground_pose(kp, X_off, CAM, POSE, (2.5, 4.0, 2.0), conf, depth_centres=centres)
+    assert not r.accepted and r.position_std_m > 1.0 and "ill-determined" in r.reason
+    independent = np.full_like(centres, np.nan)
+    r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), conf, depth_centres=independent)
+    assert r.accepted and r.position_std_m < 0.1
+    at_camera = np.repeat(POSE.center[None], len(X), 0)  # a scale about the camera's own centre: no shift
+    s_at = position_std(POSE, CAM.K, X, 1.0, DepthScale(at_camera, 0.05))
+    assert np.isclose(s_at, position_std(POSE, CAM.K, X, 1.0), rtol=1e-3)

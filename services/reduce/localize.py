@@ -14,7 +14,7 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose
 from services.pos import DEFAULT_STD_ATT, DEFAULT_STD_XY, DEFAULT_STD_Z
-from services.pose_uncertainty import fit_position_std
+from services.pose_uncertainty import DepthScale, fit_position_std
 from services.reduce.merge import Pairs
 from services.reduce.observations import image_set
 from services.reduce.prior_pnp import prior_gated_pnp, reprojection_errors
@@ -197,11 +197,18 @@ def _solve_pnp(
 
 
 def _inlier_checks(
-    est: PoseEstimate, kp: np.ndarray, X: np.ndarray, camera: Camera, pc: dict, views: np.ndarray | None
+    est: PoseEstimate,
+    kp: np.ndarray,
+    X: np.ndarray,
+    camera: Camera,
+    pc: dict,
+    views: np.ndarray | None,
+    depth_centres: np.ndarray | None = None,
 ) -> list[str]:
     """Why the inliers of est do not make an accepted pose (none: they do): how well they pin the camera
-    centre, how much of the image they cover, how many there are and their ratio, and (with `views`, the
-    rendered view each correspondence came through) whether views other than the largest confirm them.
+    centre (with `depth_centres`, each view's depth scale a nuisance: DepthScale), how much of the image
+    they cover, how many there are and their ratio, and (with `views`, the rendered view each
+    correspondence came through) whether views other than the largest confirm them.
     Sets est's position_std_m, inlier_spread, inlier_views and consensus."""
     inl = est.inliers
     reasons = []
@@ -215,7 +222,10 @@ def _inlier_checks(
                 " one view's matches alone"
             )
     if inl.sum() >= 3:  # pixel noise: their RMS residual, at least 1 px
-        std = fit_position_std(est.pose, camera.K, kp[inl], X[inl])
+        scale = None
+        if depth_centres is not None and pc.get("depth_scale_std"):
+            scale = DepthScale(depth_centres[inl], float(pc["depth_scale_std"]))
+        std = fit_position_std(est.pose, camera.K, kp[inl], X[inl], scale=scale)
         est.position_std_m = std
         if pc.get("max_position_std_m") and std > pc["max_position_std_m"]:
             reasons.append(
@@ -249,9 +259,11 @@ def estimate_ground_pose(
     prior_std: PosStd | None,
     conf: dict,
     views: np.ndarray | None = None,
+    depth_centres: np.ndarray | None = None,
 ) -> PoseEstimate:
     """PnP LO-RANSAC of one ground image (keypoints kp (n, 2), points X (n, 3)) with its POS as a prior;
-    `views` (n,): the name of the rendered view each correspondence came through (None: direct matches)."""
+    `views` (n,): the name of the rendered view each correspondence came through (None: direct matches);
+    `depth_centres` (n, 3): the centre of the view whose surface gave each point its depth (NaN: none)."""
     pc = conf["pnp"]
     est = PoseEstimate(num_correspondences=int(len(kp)))
     if len(kp) < max(pc["min_inliers"], 4):
@@ -264,7 +276,7 @@ def estimate_ground_pose(
     est.pose, est.solver = pose, solver
     est.errors = reprojection_errors(pose, camera.K, kp, X)
     est.inliers = est.errors <= pc["keep_px"]
-    reasons = _inlier_checks(est, kp, X, camera, pc, views)
+    reasons = _inlier_checks(est, kp, X, camera, pc, views, depth_centres)
     if prior is not None:
         est.to_pos, est.limits, prior_reasons = prior_agreement(pose, prior, prior_std, pc)
         reasons += prior_reasons
@@ -307,16 +319,20 @@ def ground_priors(
 
 def _correspondences(
     g: str, merged: Pairs, og: dict[str, np.ndarray], depth_points: bool | str, trusted_views: list[int]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(ground keypoint indices, 3D points, whether from a trusted view's rendered depth, the view each
-    came through) of ground image g: its merged links' points and, with depth_points, its render matches
-    lifted by the rendered depth (only the trusted views' with "trusted"); one point per ground keypoint,
-    the best-scored."""
+    came through, whether its depth is that view's surface's) of ground image g: its merged links' points
+    and, with depth_points, its render matches lifted by the rendered depth (only the trusted views' with
+    "trusted"); one point per ground keypoint, the best-scored. A link's point takes its depth from its
+    view's surface when a single aerial image observes it (the view's ray and that image's ray cross
+    where the view took the pixel's colour); a lifted point always does."""
     keys = [k for k in merged if k[1] == g]
     ig = np.concatenate([merged[k]["ig"] for k in keys]) if keys else np.zeros(0, np.int64)
     X = np.concatenate([merged[k]["X"] for k in keys]) if keys else np.zeros((0, 3))
     sc = np.concatenate([merged[k]["score"] for k in keys]) if keys else np.zeros(0, np.float32)
     view = np.concatenate([merged[k]["view"] for k in keys]) if keys else np.zeros(0, np.int64)
+    n_aerial = np.concatenate([merged[k]["n_aerial"] for k in keys]) if keys else np.zeros(0, np.int64)
+    on_surface = n_aerial < 2
     from_depth = np.zeros(len(ig), bool)
     if depth_points:
         has_x = np.isfinite(og["X"]).all(1)
@@ -328,11 +344,12 @@ def _correspondences(
         sc = np.concatenate([sc, og["score"][has_x]])
         view = np.concatenate([view, og["view"][has_x]])
         from_depth = np.concatenate([from_depth, trusted[has_x]])
+        on_surface = np.concatenate([on_surface, np.ones(int(has_x.sum()), bool)])
     order = np.lexsort((-sc.astype(np.float64), ig))
     first = np.ones(len(order), bool)
     first[1:] = ig[order][1:] != ig[order][:-1]
     sel = order[first]
-    return ig[sel], X[sel], from_depth[sel], view[sel]
+    return ig[sel], X[sel], from_depth[sel], view[sel], on_surface[sel]
 
 
 def localize_grounds(
@@ -345,20 +362,27 @@ def localize_grounds(
     depth_error: dict[str, float],
     view_names: list[str],
     conf: dict,
+    view_centres: np.ndarray | None = None,
 ) -> tuple[dict[str, PoseEstimate], dict[tuple[str, str], np.ndarray]]:
     """(pose per ground image, verified mask per pair): PnP of each ground image on its correspondences
     (pnp.depth_points: also its render matches lifted by the rendered depth, of the trusted views only
     when "trusted"), then its pairs' matches within keep_px of the pose, or all of them (unverified
-    "fundamental") or none where the pose cannot verify them."""
+    "fundamental") or none where the pose cannot verify them. `view_centres` (views, 3): the views'
+    centres, for the depth scale of the points their surfaces gave (pnp.depth_scale_std)."""
     pc = conf["pnp"]
     trusted = trusted_depth_views(view_names, depth_error, pc) if pc["depth_points"] else []
     poses: dict[str, PoseEstimate] = {}
     verified: dict[tuple[str, str], np.ndarray] = {}
     for g in sorted(n for n in obs if image_set(n) == "ground"):
-        ig, X, from_depth, view = _correspondences(g, merged, obs[g], pc["depth_points"], trusted)
+        ig, X, from_depth, view, on_surface = _correspondences(g, merged, obs[g], pc["depth_points"], trusted)
         kp = keypoints[g][ig].astype(np.float64)
         names = np.array(view_names, dtype=object)[view] if len(view) else np.zeros(0, object)
-        est = estimate_ground_pose(kp, X, ground_camera, priors.get(g), prior_std.get(g), conf, names)
+        centres = None
+        if view_centres is not None:
+            centres = np.where(on_surface[:, None], view_centres[view].reshape(-1, 3), np.nan)
+        est = estimate_ground_pose(
+            kp, X, ground_camera, priors.get(g), prior_std.get(g), conf, names, centres
+        )
         if est.inliers is not None:  # inliers whose 3D point is the rendered depth of a view trusted for it
             est.trusted_depth_inliers = int((from_depth & est.inliers).sum())
         poses[g] = est

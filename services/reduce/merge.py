@@ -35,7 +35,8 @@ def merge_one_to_one(cand: dict[str, np.ndarray], view_names: list[str]) -> np.n
 
 
 def merge_candidates(cands: Candidates, view_names: list[str]) -> Pairs:
-    """Per pair, the candidates as arrays (ia, ig, score, view, X), one-to-one (merge_one_to_one)."""
+    """Per pair, the candidates as arrays (ia, ig, score, view, X, n_aerial), one-to-one
+    (merge_one_to_one)."""
     merged: Pairs = {}
     for key in sorted(cands):
         rows = cands[key]
@@ -45,6 +46,7 @@ def merge_candidates(cands: Candidates, view_names: list[str]) -> Pairs:
             "score": np.array([r["score"] for r in rows], np.float32),
             "view": np.array([r["view"] for r in rows], np.int64),
             "X": np.array([r["X"] for r in rows], float).reshape(-1, 3),
+            "n_aerial": np.array([r["n_aerial"] for r in rows], np.int64),
         }
         merged[key] = take(c, merge_one_to_one(c, view_names))
     return merged

@@ -161,12 +161,12 @@ def link_points(
     pts_obs: list[list[tuple[str, int, float]]],
     og: dict[str, np.ndarray],
     conf: dict,
-) -> list[tuple[str, int, int, float, int, np.ndarray]]:
+) -> list[tuple[str, int, int, float, int, np.ndarray, int]]:
     """Links of one ground image's observations to the aerial points: a point that projects within
     `link.px` of the observation's render keypoint, in front of the rendered surface there (within
     link.visibility_rel x depth + link.visibility_abs: not hidden in that view). Any view's point may
     serve: a view low enough to match the ground image and another high enough to match the aerial one
-    meet at their common 3D points. Returns [(aerial, ia, ig, score, view, X)]."""
+    meet at their common 3D points. Returns [(aerial, ia, ig, score, view, X, aerial observations of X)]."""
     from scipy.spatial import cKDTree
 
     from services.geometry import lookup_depth
@@ -194,7 +194,8 @@ def link_points(
             for j in nb:
                 p = idx[j]
                 for a, ia, sa in pts_obs[p]:
-                    out.append((a, ia, int(og["i"][k]), min(sa, float(og["score"][k])), v, pts["X"][p]))
+                    sc = min(sa, float(og["score"][k]))
+                    out.append((a, ia, int(og["i"][k]), sc, v, pts["X"][p], len(pts_obs[p])))
     return out
 
 
@@ -208,7 +209,8 @@ def candidate_links(
     aerial_features: dict[str, dict[str, np.ndarray]] | None,
     stats: dict[str, Any],
 ) -> Candidates:
-    """The candidate aerial-ground matches per (aerial, ground) pair, each {ia, ig, score, view, X}:
+    """The candidate aerial-ground matches per (aerial, ground) pair, each {ia, ig, score, view, X,
+    n_aerial (the aerial images observing X)}:
     through the aerial points (3D) when aerial poses are known, else the paper's identity transfer.
     Counts go into stats (aerial_points, aerial_rejected, tracks, links)."""
     aerials = sorted(n for n in obs if image_set(n) == "aerial")
@@ -226,6 +228,7 @@ def candidate_links(
                             "score": float(min(obs[a]["score"][x], obs[g]["score"][y])),
                             "view": int(obs[g]["view"][y]),
                             "X": np.full(3, np.nan),
+                            "n_aerial": 0,
                         }
                     )
         stats["links"] = int(sum(len(c) for c in cands.values()))
@@ -245,8 +248,9 @@ def candidate_links(
         )
     n_links = 0
     for g in grounds:
-        for a, ia, ig, sc, v, X in _ground_links(views, pts, pts_obs, obs[g], conf):
-            cands.setdefault((a, g), []).append({"ia": ia, "ig": ig, "score": sc, "view": v, "X": X})
+        for a, ia, ig, sc, v, X, n_aerial in _ground_links(views, pts, pts_obs, obs[g], conf):
+            cand = {"ia": ia, "ig": ig, "score": sc, "view": v, "X": X, "n_aerial": n_aerial}
+            cands.setdefault((a, g), []).append(cand)
             n_links += 1
     stats["links"] = n_links
     return cands
@@ -258,7 +262,7 @@ def _ground_links(
     pts_obs: list[list[tuple[str, int, float]]],
     og: dict[str, np.ndarray],
     conf: dict,
-) -> list[tuple[str, int, int, float, int, np.ndarray]]:
+) -> list[tuple[str, int, int, float, int, np.ndarray, int]]:
     """link_points of one ground image's observations; with link.mode "identity" (the paper) only the
     points of the same render keypoint."""
     if conf["link"]["mode"] != "identity":

@@ -62,8 +62,9 @@ def reduce_views(
     verified = {k: np.ones(len(m["ia"]), bool) for k, m in merged.items()}
     if use_3d:
         depth_error = stats["aerial_rejected"]["depth_error"]
+        centres = np.array([v.pose.center for v in views], float).reshape(-1, 3)
         estimates, verified = localize_grounds(
-            merged, obs, keypoints, ground_camera, priors, prior_std, depth_error, view_names, conf
+            merged, obs, keypoints, ground_camera, priors, prior_std, depth_error, view_names, conf, centres
         )
         poses = {g: est.to_dict() for g, est in estimates.items()}
     pairs = verify_pairs(merged, verified, keypoints, conf)
