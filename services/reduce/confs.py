@@ -39,7 +39,7 @@ default_conf: dict[str, Any] = {
         "max_position_std_m": 0.25,
         # ... counting each view's surface as a few percent too near or too far (pose_uncertainty.DepthScale:
         # the points it gave their depth scale together about its centre and move a camera that sees them
-        # along the line from that centre). On isprs a ground image placed 6.1 m off through a view 50 m
+        # along the line from that centre). On isprs a ground image placed 6.1 m off through a view 20 m
         # away at another ground camera, all 58 inliers on that view's surface: std 0.17 m without, 0.82 m
         # with 5%; the accepted poses within 0.2 m of the truth 0.03-0.12 m -> 0.04-0.12 m (0 or None: off)
         "depth_scale_std": 0.05,
