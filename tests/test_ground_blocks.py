@@ -143,3 +143,62 @@ def test_a_block_is_tied_to_the_registered_ground_images_it_shares_verified_pair
     assert np.allclose(Xm, X[:30]) and np.allclose(Y, [sim * x for x in X[:30]])
     fitted, agree = fit_block(Y, Xm, BC)
     assert fitted is not None and agree.all() and abs(fitted.scale - 2.0) < 1e-6
+
+
+def _two_view_database(path: Path, walk: dict[str, Pose], n_points: int = 150) -> list[str]:
+    """A database of the walk's cameras where each pair of neighbours shares its own n_points facade
+    points, every point seen by those two images only (a walk's ground-ground matches)."""
+    rng = np.random.default_rng(8)
+    names = sorted(walk)
+    db = pycolmap.Database.open(str(path))
+    cam_id = db.write_camera(CAM.to_pycolmap(1))
+    rig = pycolmap.Rig()
+    rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, cam_id))
+    rig_id = db.write_rig(rig)
+    kps: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    pairs = []
+    for a, b in zip(names, names[1:], strict=False):
+        mid = (walk[a].center + walk[b].center) / 2
+        X = np.stack(
+            [mid[0] + rng.uniform(-4, 4, n_points), np.full(n_points, 10.0), rng.uniform(0, 6, n_points)], 1
+        )
+        start = {n: sum(len(k) for k in kps[n]) for n in (a, b)}
+        for n in (a, b):
+            kps[n].append(walk[n].project(CAM.K, X)[0])
+        idx = np.arange(n_points)
+        pairs.append((a, b, np.stack([start[a] + idx, start[b] + idx], 1)))
+    ids = {}
+    for n in names:
+        ids[n] = db.write_image(pycolmap.Image(name=n, camera_id=cam_id))
+        frame = pycolmap.Frame()
+        frame.rig_id = rig_id
+        frame.add_data_id(pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, cam_id), ids[n]))
+        db.write_frame(frame)
+        db.write_keypoints(ids[n], np.concatenate(kps[n]).astype(np.float32))
+    for a, b, m in pairs:
+        db.write_matches(ids[a], ids[b], m)
+        geometry = pycolmap.TwoViewGeometry()
+        geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+        geometry.inlier_matches = m
+        R = walk[b].R @ walk[a].R.T
+        geometry.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(R), walk[b].t - R @ walk[a].t)
+        db.write_two_view_geometry(ids[a], ids[b], geometry)
+    db.close()
+    return names
+
+
+def test_a_chain_whose_points_two_images_see_reconstructs(tmp_path):
+    """Two ground images share points no third image sees: COLMAP 4 skips such two-view tracks by
+    default, so a chain's initial pair got no point at all and no chain was ever reconstructed; the
+    combined SfM's mapping triangulates them (mapping.two_view_tracks)."""
+    from services.sfm.combined.blocks import reconstruct_chain
+    from services.sfm.combined.mapping import mapper_options
+
+    names = _two_view_database(tmp_path / "db.db", _walk(2))
+    mc = default_conf["mapping"]
+    assert mc["two_view_tracks"]
+    model = reconstruct_chain(tmp_path / "db.db", tmp_path, tmp_path / "block", names, mapper_options(mc))
+    assert model is not None and model.num_reg_images() == 2 and model.num_points3D() == 150
+    skipped = mapper_options({**mc, "two_view_tracks": False})
+    model = reconstruct_chain(tmp_path / "db.db", tmp_path, tmp_path / "block2", names, skipped)
+    assert model is None or model.num_reg_images() == 0

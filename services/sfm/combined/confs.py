@@ -63,6 +63,10 @@ default_conf: dict[str, Any] = {
         "min_model_size": 3,
         "refine_intrinsics": False,
         "fix_aerial": True,  # the input model (aerial + PnP-seeded ground) stays fixed; BA refines the rest
+        # triangulate points seen in two images only: a ground image's match with one neighbour is such a
+        # point, and COLMAP 4 leaves them out by default (ignore_two_view_tracks), so a chain of ground
+        # images never got an initial pair's points and its neighbours none of its matches as ties
+        "two_view_tracks": True,
         "seed": 0,
     },
     # the last adjustment (services.sfm.combined.refine): the ground images sharing min_shared_observations

@@ -220,7 +220,7 @@ def _add_new_points(
 
 def mapper_options(mc: dict) -> pycolmap.IncrementalPipelineOptions:
     """pycolmap's incremental mapping options from conf["mapping"]: one model, the input model's
-    frames fixed (fix_aerial), intrinsics refined or not."""
+    frames fixed (fix_aerial), intrinsics refined or not, points of two images triangulated or not."""
     o = pycolmap.IncrementalPipelineOptions()
     o.random_seed = int(mc["seed"])
     o.mapper.random_seed = int(mc["seed"])
@@ -232,6 +232,7 @@ def mapper_options(mc: dict) -> pycolmap.IncrementalPipelineOptions:
     o.mapper.abs_pose_min_num_inliers = int(mc["abs_pose_min_num_inliers"])
     o.mapper.abs_pose_min_inlier_ratio = float(mc["abs_pose_min_inlier_ratio"])
     o.mapper.abs_pose_max_error = float(mc["abs_pose_max_error"])
+    o.triangulation.ignore_two_view_tracks = not bool(mc.get("two_view_tracks", False))
     refine = bool(mc["refine_intrinsics"])
     o.ba_refine_focal_length = refine
     o.ba_refine_extra_params = refine
