@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from services.sfm.combined.consistency import default_conf as consistency_conf
 from services.sfm.combined.surface import default_conf as surface_conf
 
 default_conf: dict[str, Any] = {
@@ -31,6 +32,9 @@ default_conf: dict[str, Any] = {
         # ... and whose matches fit the scene: lifted onto the aerial surface from the first image's POS,
         # they must place the second camera by PnP where its POS says (services.sfm.combined.surface)
         "surface": dict(surface_conf),
+        # ... and whose baseline agrees with where the other pairs and the POS put its images (a
+        # translation averaging; services.sfm.combined.consistency)
+        "consistency": dict(consistency_conf),
     },
     "seed_points": True,  # 3D points of the transferred tracks in the input model
     # ground images with an accepted PnP pose start registered, held at that pose ... (off: the mapper

@@ -365,7 +365,7 @@ def _write_ground_ground(
     from services.matching import match_features
 
     gp = ground_pairs(priors, sorted(g_feats), conf)
-    n = 0
+    verified: dict[tuple[str, str], np.ndarray] = {}
     for i, (g0, g1) in enumerate(gp):
         mm, _ = match_features(g_feats[g0], g_feats[g1], match_conf["matcher"])
         f0, f1 = g_feats[g0]["keypoints"], g_feats[g1]["keypoints"]
@@ -379,10 +379,41 @@ def _write_ground_ground(
                 inl = inl[:0]
         cdb.ground_pairs[f"{g0} {g1}"] = rec
         if len(inl):
-            write_pair(db, cdb.ids[g0], cdb.ids[g1], inl, cdb.pair_sizes, True, rec.get("cam2_from_cam1"))
-            n += 1
+            verified[(g0, g1)] = inl
         prog((i + 1) / max(len(gp), 1), f"ground pair {i + 1}/{len(gp)}")
-    return n
+    refused = _against_each_other(cdb.ground_pairs, verified, priors, prior_std, anchors, conf)
+    for pair, why in refused.items():
+        cdb.ground_pairs[" ".join(pair)].update(accepted=False, reason=f"against the other pairs: {why}")
+        verified.pop(pair)
+    for (g0, g1), inl in verified.items():
+        rel = cdb.ground_pairs[f"{g0} {g1}"].get("cam2_from_cam1")
+        write_pair(db, cdb.ids[g0], cdb.ids[g1], inl, cdb.pair_sizes, True, rel)
+    return len(verified)
+
+
+def _against_each_other(
+    records: dict[str, dict[str, Any]],
+    verified: dict[tuple[str, str], np.ndarray],
+    priors: dict[str, Pose],
+    prior_std: dict[str, PosStd],
+    anchors: dict[str, tuple[Pose, PosStd]] | None,
+    conf: dict,
+) -> dict[tuple[str, str], str]:
+    """The verified pairs whose baselines the others refuse (services.sfm.combined.consistency), each
+    pair's direction turned into the model's frame by its first image's attitude (aerial-tied where the
+    reducer has it, else the POS)."""
+    from services.sfm.combined.consistency import inconsistent_pairs, pair_direction
+
+    cc = conf.get("consistency", {})
+    if not cc.get("enabled", False):
+        return {}
+    dirs = {}
+    for g0, g1 in verified:
+        rel = records[f"{g0} {g1}"]["cam2_from_cam1"]
+        first = (anchors or {}).get(g0, (priors[g0], None))[0]
+        dirs[(g0, g1)] = pair_direction(np.asarray(rel["R"], float), np.asarray(rel["t"], float), first)
+    sizes = {p: len(inl) for p, inl in verified.items()}
+    return inconsistent_pairs(dirs, priors, prior_std, cc, anchors, sizes)
 
 
 def _ground_names(transfer_matches: Path) -> set[str]:
