@@ -29,9 +29,13 @@ default_conf: dict[str, Any] = {
         "require_calibrated": True,
         "min_e_f_inlier_ratio": 0.95,  # ... below this share of F's inliers for E's (COLMAP's default)
         "seed": 0,
-        # ... and whose matches fit the scene: lifted onto the aerial surface from the first image's POS,
-        # they must place the second camera by PnP where its POS says (services.sfm.combined.surface)
-        "surface": dict(surface_conf),
+        # ... and, when enabled, whose matches fit the scene: lifted onto the aerial surface from the first
+        # image's aerial-tied pose, they must place the second camera by PnP where its POS says
+        # (services.sfm.combined.surface). Off: the plane proxy is wrong on a third of what a ground camera
+        # sees, so true neighbours failed it (isprs-walk: 6 true pairs of 30-56% overlap refused, G0006 cut
+        # from its chain); the calibrated-camera and consistency checks refuse the false pairs it caught
+        # (docs/measurements.md "The surface check off")
+        "surface": {**surface_conf, "enabled": False},
         # ... and whose baseline agrees with where the other pairs and the POS put its images (a
         # translation averaging; services.sfm.combined.consistency)
         "consistency": dict(consistency_conf),
