@@ -87,6 +87,81 @@ def ground_pair_truth(scene: Path, database: Path, report: dict) -> dict[str, di
     return out
 
 
+REFUSAL_KINDS = {  # the start of a refused pair's reason (services.sfm.combined.database) -> its kind
+    "an uncalibrated fundamental matrix": "calibrated",
+    "against the aerial surface": "surface",
+    "against the other pairs": "consistency",
+    "relative rotation": "pos",
+    "baseline direction": "pos",
+}
+
+
+def refusal_kind(reason: str | None) -> str:
+    """The check that refused a ground-ground pair, from its reason: calibrated, surface, consistency,
+    pos (its relative pose against the POS), or few (too few matches or inliers)."""
+    for start, kind in REFUSAL_KINDS.items():
+        if (reason or "").startswith(start):
+            return kind
+    return "few"
+
+
+def refused_pair_truth(scene: Path, job_root: Path, report: dict, min_pair: int) -> dict[str, dict]:
+    """Per refused ground-ground pair of the combined report with at least `min_pair` inliers: the pair
+    matched again with the job's features and matcher, verified by the essential matrix and the POS alone
+    (none of the checks after them), and how many of those inliers are GT-correct; with the refusing
+    check's kind. What the checks cost in true pairs, which the verified pairs alone cannot show."""
+    from services.colmap_model import read_cameras_json
+    from services.conf import merge_conf
+    from services.evaluation.common import read_gt_model
+    from services.evaluation.matches import gt_correct_mask
+    from services.matching import match_features
+    from services.reduce import ground_priors
+    from services.sfm.combined.confs import default_conf
+    from services.sfm.combined.database import ground_features, verify_ground_pair
+    from services.synth import read_depth
+
+    job = Job.load(job_root)
+    conf = {**merge_conf(default_conf, job.combined_conf())["ground_pairs"], "require_calibrated": False}
+    refused = {
+        k: r for k, r in report.get("ground_pairs", {}).items()
+        if not r.get("accepted") and int(r.get("inliers", 0)) >= min_pair
+    }  # fmt: skip
+    if not refused:
+        return {}
+    priors, prior_std = ground_priors(job.pos, job.sfm.dir / "georef.json")
+    names = sorted({n for k in refused for n in k.split(" ")})
+    feats = ground_features(names, job.features_path, job.image_dir, job.match_conf())
+    camera = read_cameras_json(job.cameras)["ground"]
+    cams, poses = read_gt_model(scene)
+    out: dict[str, dict] = {}
+    for key, rec in sorted(refused.items()):
+        a, b = key.split(" ")
+        m, _ = match_features(feats[a], feats[b], job.match_conf()["matcher"])
+        k0, k1 = (np.asarray(feats[n]["keypoints"])[:, :2] for n in (a, b))
+        args = (camera, priors[a], priors[b], prior_std[a], prior_std[b], conf)
+        inl, _ = verify_ground_pair(k0, k1, m, *args)
+        ok = gt_correct_mask(
+            k0[inl[:, 0]], k1[inl[:, 1]], cams[a], poses[a], read_depth(scene, a),
+            cams[b], poses[b], read_depth(scene, b),
+        ) if len(inl) else np.zeros(0, bool)  # fmt: skip
+        out[key] = {"kind": refusal_kind(rec.get("reason")), "inliers": len(inl), "gt_correct": int(ok.sum())}
+    return out
+
+
+def refusals_by_kind(pairs: dict[str, dict]) -> dict[str, dict[str, int]]:
+    """Per refusing check: the refused pairs that the essential matrix and the POS alone verify, those
+    of them without a GT-correct inlier, and those with at least half of their inliers GT-correct."""
+    out: dict[str, dict[str, int]] = {}
+    for p in pairs.values():
+        if not p["inliers"]:
+            continue
+        d = out.setdefault(p["kind"], {"verified_without": 0, "false": 0, "mostly_correct": 0})
+        d["verified_without"] += 1
+        d["false"] += int(p["gt_correct"] == 0)
+        d["mostly_correct"] += int(2 * p["gt_correct"] >= p["inliers"])
+    return out
+
+
 def surface_verdicts(pairs: dict[str, dict]) -> dict[str, int]:
     """The surface check's verdicts on verified pairs against the truth (a pair with no GT-correct match
     is false): true pairs kept and refused, false pairs kept and refused (pairs it did not judge apart)."""
@@ -190,6 +265,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--metres", type=float, default=0.5)
     ap.add_argument("--min-pair", type=int, default=15, help="verified matches of a ground-ground pair")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--refused", action="store_true", help="also match the refused pairs again and judge them (minutes)"
+    )
     args = ap.parse_args(argv)
     rows = ground_rows(args.scene, args.job, args.job / "eval-ground-report", args.metres, args.min_pair)
     print_rows(rows)
@@ -200,9 +278,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"verified ground-ground pairs: {len(pairs)}, without a GT-correct match: {len(false)} {false}")
     verdicts = surface_verdicts(pairs)
     print(f"the surface check on them (pairs it refused are kept when it is not enforced): {verdicts}")
+    refused = refused_pair_truth(args.scene, args.job, report, args.min_pair) if args.refused else {}
+    if args.refused:
+        by_check = refusals_by_kind(refused)
+        print(f"refused pairs the essential matrix and the POS alone verify, by check: {by_check}")
     if args.json:
         doc = {"command": "python bench/ground_report.py " + " ".join(argv or sys.argv[1:])}
         extra = {"ground_pairs": pairs, "ground_pairs_without_correct": false, "surface_verdicts": verdicts}
+        if args.refused:
+            extra |= {"refused_pairs": refused, "refusals_by_check": refusals_by_kind(refused)}
         args.json.write_text(json.dumps({**doc, **summary(rows), **extra, "per_image": rows}, indent=1))
     return 0
 

@@ -59,3 +59,31 @@ def test_summary_counts_every_cause_and_names_the_images(bench):
     s = bench.summary(rows)
     assert s["counts"] == {"within": 1, "off": 0, "dropped": 0, "ground-only": 2, "unmatched": 0}
     assert s["images"] == {"within": ["ground/G1.jpg"], "ground-only": ["ground/G2.jpg", "ground/G3.jpg"]}
+
+
+@pytest.mark.parametrize(
+    "reason, kind",
+    [
+        ("an uncalibrated fundamental matrix explains more of its matches than any motion", "calibrated"),
+        ("against the aerial surface: its matches fit one pose of the second camera for 68", "surface"),
+        ("against the other pairs: its baseline stands 172 deg from where the other pairs", "consistency"),
+        ("relative rotation 87.2 deg from the POS (> 14.7); baseline direction 143.2 deg", "pos"),
+        ("baseline direction 131.0 deg from the POS (> 58.5)", "pos"),
+        ("12 inliers (< 15)", "few"),
+        (None, "few"),
+    ],
+)
+def test_a_refused_pair_is_put_down_to_the_check_that_refused_it(bench, reason, kind):
+    assert bench.refusal_kind(reason) == kind
+
+
+def test_refusals_are_counted_by_check_as_false_or_mostly_correct(bench):
+    pairs = {
+        "a b": {"kind": "surface", "inliers": 332, "gt_correct": 308},  # a true pair the check refused
+        "a c": {"kind": "surface", "inliers": 79, "gt_correct": 1},  # almost all wrong, but not false
+        "b c": {"kind": "calibrated", "inliers": 29, "gt_correct": 0},
+        "c d": {"kind": "calibrated", "inliers": 0, "gt_correct": 0},  # not verified even without the check
+    }
+    by = bench.refusals_by_kind(pairs)
+    assert by["surface"] == {"verified_without": 2, "false": 0, "mostly_correct": 1}
+    assert by["calibrated"] == {"verified_without": 1, "false": 1, "mostly_correct": 0}
