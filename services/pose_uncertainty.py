@@ -7,6 +7,7 @@ standard deviation of the camera centre along its worst direction.
 
     std_m = position_std(pose, camera.K, X, sigma_px=1.0)
     std_m = fit_position_std(pose, camera.K, kp, X)  # pixel noise: the fit's RMS residual, >= 1 px
+    std_deg = fit_attitude_std(pose, camera.K, kp, X)  # the attitude's, about its worst axis
 
 Points whose depth comes from a rendered view's surface (lifted by its depth, or triangulated with one
 aerial ray, which crosses the view's ray where the view took that pixel's colour) share that surface's
@@ -124,6 +125,25 @@ def position_std(
     return float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
 
 
+def attitude_std_deg(
+    pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0, scale: DepthScale | None = None
+) -> float:
+    """Standard deviation (degrees) of the camera's attitude about its least determined axis."""
+    cov = pose_covariance(pose, K, X, sigma_px, scale)
+    if not np.isfinite(cov).all():
+        return float("inf")
+    return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))))
+
+
+def fit_sigma_px(
+    pose: Pose, K: np.ndarray, kp: np.ndarray, X: np.ndarray, min_sigma_px: float = 1.0
+) -> float:
+    """The pixel noise of a fit: the RMS distance of the points' (n, 3) projections to their keypoints
+    kp (n, 2), at least min_sigma_px."""
+    uv, _ = pose.project(K, np.asarray(X, float).reshape(-1, 3))
+    return max(float(np.sqrt(np.mean(np.sum((uv - np.asarray(kp, float)) ** 2, 1)))), min_sigma_px)
+
+
 def fit_position_std(
     pose: Pose,
     K: np.ndarray,
@@ -132,14 +152,28 @@ def fit_position_std(
     min_sigma_px: float = 1.0,
     scale: DepthScale | None = None,
 ) -> float:
-    """position_std with the pixel noise taken from the fit itself: the RMS distance of the points'
-    projections to their keypoints kp (n, 2), at least min_sigma_px; inf for fewer than 3 points."""
+    """position_std with the pixel noise taken from the fit itself (fit_sigma_px); inf for fewer than 3
+    points."""
     X = np.asarray(X, float).reshape(-1, 3)
     if len(X) < 3:
         return float("inf")
-    uv, _ = pose.project(K, X)
-    sigma = max(float(np.sqrt(np.mean(np.sum((uv - np.asarray(kp, float)) ** 2, 1)))), min_sigma_px)
-    return position_std(pose, K, X, sigma, scale)
+    return position_std(pose, K, X, fit_sigma_px(pose, K, kp, X, min_sigma_px), scale)
+
+
+def fit_attitude_std(
+    pose: Pose,
+    K: np.ndarray,
+    kp: np.ndarray,
+    X: np.ndarray,
+    min_sigma_px: float = 1.0,
+    scale: DepthScale | None = None,
+) -> float:
+    """attitude_std_deg with the pixel noise taken from the fit itself (fit_sigma_px); inf for fewer than
+    3 points."""
+    X = np.asarray(X, float).reshape(-1, 3)
+    if len(X) < 3:
+        return float("inf")
+    return attitude_std_deg(pose, K, X, fit_sigma_px(pose, K, kp, X, min_sigma_px), scale)
 
 
 def held_adjustment(

@@ -12,7 +12,9 @@ from services.conf import merge_conf
 from services.geometry import look_at
 from services.pose_uncertainty import (
     DepthScale,
+    attitude_std_deg,
     depth_scale_jacobian,
+    fit_attitude_std,
     fit_position_std,
     position_std,
     projection_jacobian,
@@ -36,6 +38,7 @@ def _points(
 
 
 FACADE = (20.0, 20.0)
+DISTANT = (60.0, 60.0)
 
 
 def test_jacobian_matches_finite_differences():
@@ -148,3 +151,35 @@ def test_a_pose_through_a_distant_views_surface_counts_its_depth_scale():
     at_camera = np.repeat(POSE.center[None], len(X), 0)  # a scale about the camera's own centre: no shift
     s_at = position_std(POSE, CAM.K, X, 1.0, DepthScale(at_camera, 0.05))
     assert np.isclose(s_at, position_std(POSE, CAM.K, X, 1.0), rtol=1e-3)
+
+
+def test_a_distant_facade_leaves_the_centre_uncertain_but_pins_the_attitude():
+    """Points on a facade 60 m away over a third of the image: the centre is uncertain by a few decimetres
+    (more than the reducer accepts), the attitude pinned within a third of a degree (what lets a ground
+    pair's rotation be checked against it); on a near patch of facade a shift trades with a turn, and
+    the attitude is uncertain too."""
+    rng = np.random.default_rng(11)
+    kp, X = _points(rng, (200, 800), (200, 560), depth=DISTANT)
+    assert position_std(POSE, CAM.K, X, 1.0) > transfer.default_conf["pnp"]["max_position_std_m"]
+    assert 0.0 < fit_attitude_std(POSE, CAM.K, kp, X) < 0.5
+    _, X_patch = _points(rng, (430, 600), (300, 440), depth=FACADE)
+    assert attitude_std_deg(POSE, CAM.K, X_patch, 1.0) > 1.0
+    assert attitude_std_deg(POSE, CAM.K, X, 2.0) == np.float64(2.0) * attitude_std_deg(POSE, CAM.K, X, 1.0)
+    assert fit_attitude_std(POSE, CAM.K, kp[:2], X[:2]) == float("inf")
+
+
+def test_the_reducer_ties_an_attitude_only_where_its_inliers_agree_with_the_pos():
+    """A consensus on a distant facade: its pose is not accepted (the centre is ill-determined) but its
+    attitude is tied to the aerial images; the same inliers far from the POS tie nothing."""
+    rng = np.random.default_rng(11)
+    conf = transfer.default_conf
+    kp, X = _points(rng, (200, 800), (200, 560), depth=DISTANT)
+    r = transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), conf)
+    assert not r.accepted and r.consensus
+    assert r.attitude_tied and r.attitude_std_deg < conf["pnp"]["max_attitude_std_deg"]
+    assert r.to_dict()["attitude_tied"] and r.to_dict()["attitude_std_deg"] == r.attitude_std_deg
+    far = Pose.from_center(POSE.R.T, POSE.center + np.array([40.0, 0.0, 0.0]))  # the POS 40 m off
+    r = transfer.estimate_ground_pose(kp, X, CAM, far, (2.5, 4.0, 2.0), conf)
+    assert r.consensus and not r.attitude_tied
+    off = merge_conf(conf, {"pnp": {"max_attitude_std_deg": None}})
+    assert not transfer.estimate_ground_pose(kp, X, CAM, POSE, (2.5, 4.0, 2.0), off).attitude_tied

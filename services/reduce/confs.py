@@ -56,6 +56,11 @@ default_conf: dict[str, Any] = {
         # without views, are not counted
         "min_other_view_inliers": 4,
         "min_inlier_ratio": 0.15,
+        # a pose's attitude is tied to the aerial images (its record's attitude_tied) when its inliers are a
+        # consensus through two views at least that agrees with the POS and pin its attitude within this
+        # (std about the worst axis, degrees): the combined SfM checks ground pairs' relative rotations
+        # against such attitudes (None: none is)
+        "max_attitude_std_deg": 1.0,
         "prior_sigmas": 3.0,  # the pose must lie within this many POS standard deviations ...
         "min_position_m": 5.0,  # ... but at least this far (horizontal) ...
         "min_height_m": 5.0,  # ... and this far (vertical) ...

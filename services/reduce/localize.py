@@ -14,7 +14,7 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose
 from services.pos import DEFAULT_STD_ATT, DEFAULT_STD_XY, DEFAULT_STD_Z
-from services.pose_uncertainty import DepthScale, fit_position_std
+from services.pose_uncertainty import DepthScale, fit_attitude_std, fit_position_std
 from services.reduce.merge import Pairs
 from services.reduce.observations import image_set
 from services.reduce.prior_pnp import prior_gated_pnp, reprojection_errors
@@ -29,7 +29,8 @@ class PoseEstimate:
     """One ground image's PnP pose and its checks. `pose`, `inliers` (correspondences within keep_px of
     it) and `errors` (their reprojection errors, px) are None when no pose was found; `accepted` when
     every check passed (else `reason` says why); `consensus` when enough correspondences agree on one
-    camera to verify matches even if the pose itself is not accepted."""
+    camera to verify matches even if the pose itself is not accepted; `attitude_tied` when its attitude
+    alone can be trusted (attitude_tied)."""
 
     num_correspondences: int
     accepted: bool = False
@@ -45,6 +46,8 @@ class PoseEstimate:
     limits: dict[str, float] | None = None
     trusted_depth_inliers: int | None = None
     inlier_views: dict[str, int] | None = None  # the inliers by the rendered view they came through
+    attitude_std_deg: float | None = None  # the attitude's std about its worst axis, from the inliers
+    attitude_tied: bool = False
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -76,9 +79,10 @@ class PoseEstimate:
                 num_inliers=self.num_inliers,
                 inlier_ratio=self.inlier_ratio,
                 consensus=self.consensus,
+                attitude_tied=self.attitude_tied,
             )
         optional = ("position_std_m", "inlier_spread", "to_pos", "limits")
-        for k in (*optional, "trusted_depth_inliers", "inlier_views"):
+        for k in (*optional, "attitude_std_deg", "trusted_depth_inliers", "inlier_views"):
             if getattr(self, k) is not None:
                 d[k] = getattr(self, k)
         return {**d, **self.extra}
@@ -209,14 +213,16 @@ def _inlier_checks(
     centre (with `depth_centres`, each view's depth scale a nuisance: DepthScale), how much of the image
     they cover, how many there are and their ratio, and (with `views`, the rendered view each
     correspondence came through) whether views other than the largest confirm them.
-    Sets est's position_std_m, inlier_spread, inlier_views and consensus."""
+    Sets est's position_std_m, attitude_std_deg, inlier_spread, inlier_views and consensus."""
     inl = est.inliers
     reasons = []
+    confirmed = True
     if views is not None:
         names, counts = np.unique(views[inl], return_counts=True)
         est.inlier_views = {str(n): int(c) for n, c in zip(names, counts, strict=True)}
         others = int(inl.sum()) - (int(counts.max()) if len(counts) else 0)
-        if others < pc["min_other_view_inliers"]:
+        confirmed = others >= pc["min_other_view_inliers"]
+        if not confirmed:
             reasons.append(
                 f"{others} inliers through views other than the largest (< {pc['min_other_view_inliers']}):"
                 " one view's matches alone"
@@ -227,6 +233,7 @@ def _inlier_checks(
             scale = DepthScale(depth_centres[inl], float(pc["depth_scale_std"]))
         std = fit_position_std(est.pose, camera.K, kp[inl], X[inl], scale=scale)
         est.position_std_m = std
+        est.attitude_std_deg = fit_attitude_std(est.pose, camera.K, kp[inl], X[inl], scale=scale)
         if pc.get("max_position_std_m") and std > pc["max_position_std_m"]:
             reasons.append(
                 f"position ill-determined by its inliers: std {std:.2f} m (> {pc['max_position_std_m']})"
@@ -248,6 +255,7 @@ def _inlier_checks(
     # enough correspondences agree on one camera: they verify the matches even where the pose itself is
     # ill-determined (clustered or planar points) and fails the spread check above or the POS checks
     est.consensus = bool(n >= pc["min_inliers"] and inl.mean() >= pc["min_inlier_ratio"])
+    est.attitude_tied = est.consensus and confirmed
     return reasons
 
 
@@ -280,6 +288,12 @@ def estimate_ground_pose(
     if prior is not None:
         est.to_pos, est.limits, prior_reasons = prior_agreement(pose, prior, prior_std, pc)
         reasons += prior_reasons
+        est.attitude_tied = est.attitude_tied and not prior_reasons
+    # its attitude alone can be trusted (a ground pair's relative rotation is checked against it,
+    # services.sfm.combined): a consensus through two views at least, agreeing with the POS, whose
+    # attitude the inliers pin (a position they leave metres uncertain still comes with a sharp turn)
+    max_att = pc.get("max_attitude_std_deg")
+    est.attitude_tied = bool(est.attitude_tied and max_att and (est.attitude_std_deg or np.inf) <= max_att)
     est.accepted = not reasons
     est.reason = "; ".join(reasons) if reasons else "ok"
     return est

@@ -6,7 +6,8 @@ Database (out/database.db), a copy of the aerial SfM database with:
   transferred matches refer to, at an offset;
 - the ground camera, the ground images with their matching features and their POS as pose priors;
 - ground-ground matches (POS neighbours, the matching features, an essential-matrix RANSAC whose
-  relative pose must agree with the POS: facades repeat, and a fundamental matrix alone verified pairs
+  relative pose must agree with the POS, and its rotation with the images' attitudes tied to the aerial
+  images where the reducer's PnP ties both: facades repeat, and a fundamental matrix alone verified pairs
   that share nothing) and the transferred aerial-ground matches (the reducer's verified matches), with
   two-view geometries.
 

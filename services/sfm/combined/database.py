@@ -21,6 +21,7 @@ from services.sfm.combined.surface import SurfaceCheck
 logger = logging.getLogger("midview.combined_sfm")
 
 PosStd = tuple[float, float, float]
+Attitude = tuple[np.ndarray, float]  # a cam_from_world rotation (3, 3) and its std (degrees)
 
 
 def copy_database(src: Path, dst: Path) -> Path:
@@ -130,12 +131,14 @@ def verify_ground_pair(
     std0: tuple[float, float, float],
     std1: tuple[float, float, float],
     conf: dict,
+    attitudes: tuple[Attitude | None, Attitude | None] = (None, None),
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """The inlier matches (k, 2) of two ground images and a record of the check: an essential-matrix
     RANSAC (pycolmap, both images taken with `camera`), its relative pose compared with the POS poses
-    (cam_from_world; std = (horizontal m, vertical m, attitude deg)). A fundamental matrix alone
-    accepts repeated facade patterns between images that share nothing; the POS rejects them.
-    Returns no inliers when the check fails."""
+    (cam_from_world; std = (horizontal m, vertical m, attitude deg)), its rotation with the images'
+    aerial-tied attitudes instead where both have one (`attitudes`: aerial_tied_attitudes). A
+    fundamental matrix alone accepts repeated facade patterns between images that share nothing; the POS
+    rejects them. Returns no inliers when the check fails."""
     from services.geometry import angle_deg, rotation_angle_deg
 
     none = np.zeros((0, 2), np.int64)
@@ -179,6 +182,14 @@ def verify_ground_pair(
     reasons = []
     if drot > lim_rot:
         reasons.append(f"relative rotation {drot:.1f} deg from the POS (> {lim_rot:.1f})")
+    if attitudes[0] is not None and attitudes[1] is not None:
+        (R0, s0), (R1, s1) = attitudes
+        d_tied = rotation_angle_deg(R_est @ (R1 @ R0.T).T)
+        lim_tied = max(k * math.sqrt(s0**2 + s1**2), float(conf["min_tied_rotation_deg"]))
+        rec.update(tied_rotation_deg=d_tied, tied_rotation_limit_deg=lim_tied)
+        if d_tied > lim_tied:
+            why = f"relative rotation {d_tied:.1f} deg from the images' aerial-tied attitudes"
+            reasons.append(f"{why} (> {lim_tied:.1f})")
     t = np.asarray(rel.translation, float)
     base = prior1.center - prior0.center
     b = float(np.linalg.norm(base))
@@ -324,6 +335,22 @@ def aerial_tied_poses(transfer_dir: Path) -> dict[str, tuple[Pose, PosStd]]:
     return out
 
 
+def aerial_tied_attitudes(transfer_dir: Path, min_std_deg: float) -> dict[str, Attitude]:
+    """The ground images' attitudes tied to the aerial images (the reducer's PnP poses with attitude_tied,
+    accepted or not: a position the inliers leave uncertain can come with a sharp attitude), each with its
+    standard deviation about its worst axis (degrees, at least min_std_deg)."""
+    import json
+
+    path = transfer_dir / "ground_poses.json"
+    if not path.is_file():
+        return {}
+    return {
+        name: (np.asarray(p["R"], float), max(float(p["attitude_std_deg"]), min_std_deg))
+        for name, p in json.loads(path.read_text()).get("images", {}).items()
+        if p.get("attitude_tied") and p.get("R") is not None and p.get("attitude_std_deg") is not None
+    }
+
+
 def _against_surface(
     surface: SurfaceCheck,
     anchors: dict[str, tuple[Pose, PosStd]] | None,
@@ -359,6 +386,7 @@ def _write_ground_ground(
     prog,
     surface: SurfaceCheck | None = None,
     anchors: dict[str, tuple[Pose, PosStd]] | None = None,
+    attitudes: dict[str, Attitude] | None = None,
 ) -> int:
     """Ground pairs from the POS, matched and verified (verify_ground_pair, then against the aerial
     surface when `surface` is given); the number written."""
@@ -369,8 +397,9 @@ def _write_ground_ground(
     for i, (g0, g1) in enumerate(gp):
         mm, _ = match_features(g_feats[g0], g_feats[g1], match_conf["matcher"])
         f0, f1 = g_feats[g0]["keypoints"], g_feats[g1]["keypoints"]
+        tied = ((attitudes or {}).get(g0), (attitudes or {}).get(g1))
         inl, rec = verify_ground_pair(
-            f0, f1, mm, camera, priors[g0], priors[g1], prior_std[g0], prior_std[g1], conf
+            f0, f1, mm, camera, priors[g0], priors[g1], prior_std[g0], prior_std[g1], conf, tied
         )
         if len(inl) and surface is not None:
             rec["surface"] = _against_surface(surface, anchors, g0, g1, f0, f1, inl, priors, prior_std)
@@ -459,7 +488,8 @@ def build_database(
         _write_aerial_ground(db, cdb, t_pairs, t_kps, g_feats)
         args = (g_feats, ground_camera, priors, prior_std, match_conf, conf["ground_pairs"], prog)
         check = surface_check(aerial_dir, ground_camera, conf["ground_pairs"])
-        n_gg = _write_ground_ground(db, cdb, *args, check, aerial_tied_poses(transfer_dir))
+        tied = aerial_tied_attitudes(transfer_dir, float(conf["ground_pairs"]["tied_attitude_min_std_deg"]))
+        n_gg = _write_ground_ground(db, cdb, *args, check, aerial_tied_poses(transfer_dir), tied)
     finally:
         db.close()
     logger.info(
