@@ -3,11 +3,11 @@
 A ground image localized on points clustered in a small part of it (a patch of facade) fits them within
 a pixel at poses metres apart: a sideways shift trades with a turn. Its covariance tells: the pose's
 6x6 covariance from the linearized projection (unit weights, pixel noise sigma), and from it the
-standard deviation of the camera centre along its worst direction.
+standard deviation of the camera centre along its worst direction (and of its attitude about its worst
+axis: points far away can leave the centre uncertain and pin the attitude).
 
     std_m = position_std(pose, camera.K, X, sigma_px=1.0)
-    std_m = fit_position_std(pose, camera.K, kp, X)  # pixel noise: the fit's RMS residual, >= 1 px
-    std_deg = fit_attitude_std(pose, camera.K, kp, X)  # the attitude's, about its worst axis
+    std_m, std_deg = fit_pose_stds(pose, camera.K, kp, X)  # pixel noise: the fit's RMS residual, >= 1 px
 
 Points whose depth comes from a rendered view's surface (lifted by its depth, or triangulated with one
 aerial ray, which crosses the view's ray where the view took that pixel's colour) share that surface's
@@ -16,7 +16,7 @@ a camera that sees them along the line from that centre, by the same fraction of
 image placed through a view 50 m away on points 10% too far lands 5 m off, its pixels fitted as well.
 `DepthScale` makes each such view's scale a nuisance parameter with a prior:
 
-    std_m = fit_position_std(pose, K, kp, X, scale=DepthScale(centres, 0.05))  # NaN rows: independent
+    std_m, _ = fit_pose_stds(pose, K, kp, X, scale=DepthScale(centres, 0.05))  # NaN rows: independent
 
 For images of a reconstruction whose points are themselves estimated (a run of ground images tied by
 their own points), the covariance of the whole bundle adjustment tells instead:
@@ -115,65 +115,48 @@ def pose_covariance(
     return sigma_px**2 * np.linalg.inv(H)[:6, :6]
 
 
+def pose_stds(
+    pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0, scale: DepthScale | None = None
+) -> tuple[float, float]:
+    """Standard deviations of the camera centre along its least determined direction (m) and of its
+    attitude about its least determined axis (degrees); inf where undetermined."""
+    cov = pose_covariance(pose, K, X, sigma_px, scale)
+    if not np.isfinite(cov).all():
+        return float("inf"), float("inf")
+    worst = [float(np.sqrt(max(np.linalg.eigvalsh(c).max(), 0.0))) for c in (cov[:3, :3], cov[3:, 3:])]
+    return worst[0], float(np.degrees(worst[1]))
+
+
 def position_std(
     pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0, scale: DepthScale | None = None
 ) -> float:
     """Standard deviation (m) of the camera centre along its least determined direction."""
-    cov = pose_covariance(pose, K, X, sigma_px, scale)
-    if not np.isfinite(cov).all():
-        return float("inf")
-    return float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
+    return pose_stds(pose, K, X, sigma_px, scale)[0]
 
 
 def attitude_std_deg(
     pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0, scale: DepthScale | None = None
 ) -> float:
     """Standard deviation (degrees) of the camera's attitude about its least determined axis."""
-    cov = pose_covariance(pose, K, X, sigma_px, scale)
-    if not np.isfinite(cov).all():
-        return float("inf")
-    return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))))
+    return pose_stds(pose, K, X, sigma_px, scale)[1]
 
 
-def fit_sigma_px(
-    pose: Pose, K: np.ndarray, kp: np.ndarray, X: np.ndarray, min_sigma_px: float = 1.0
-) -> float:
-    """The pixel noise of a fit: the RMS distance of the points' (n, 3) projections to their keypoints
-    kp (n, 2), at least min_sigma_px."""
-    uv, _ = pose.project(K, np.asarray(X, float).reshape(-1, 3))
-    return max(float(np.sqrt(np.mean(np.sum((uv - np.asarray(kp, float)) ** 2, 1)))), min_sigma_px)
-
-
-def fit_position_std(
+def fit_pose_stds(
     pose: Pose,
     K: np.ndarray,
     kp: np.ndarray,
     X: np.ndarray,
     min_sigma_px: float = 1.0,
     scale: DepthScale | None = None,
-) -> float:
-    """position_std with the pixel noise taken from the fit itself (fit_sigma_px); inf for fewer than 3
-    points."""
+) -> tuple[float, float]:
+    """pose_stds with the pixel noise taken from the fit itself: the RMS distance of the points' (n, 3)
+    projections to their keypoints kp (n, 2), at least min_sigma_px; inf for fewer than 3 points."""
     X = np.asarray(X, float).reshape(-1, 3)
     if len(X) < 3:
-        return float("inf")
-    return position_std(pose, K, X, fit_sigma_px(pose, K, kp, X, min_sigma_px), scale)
-
-
-def fit_attitude_std(
-    pose: Pose,
-    K: np.ndarray,
-    kp: np.ndarray,
-    X: np.ndarray,
-    min_sigma_px: float = 1.0,
-    scale: DepthScale | None = None,
-) -> float:
-    """attitude_std_deg with the pixel noise taken from the fit itself (fit_sigma_px); inf for fewer than
-    3 points."""
-    X = np.asarray(X, float).reshape(-1, 3)
-    if len(X) < 3:
-        return float("inf")
-    return attitude_std_deg(pose, K, X, fit_sigma_px(pose, K, kp, X, min_sigma_px), scale)
+        return float("inf"), float("inf")
+    uv, _ = pose.project(K, X)
+    sigma = max(float(np.sqrt(np.mean(np.sum((uv - np.asarray(kp, float)) ** 2, 1)))), min_sigma_px)
+    return pose_stds(pose, K, X, sigma, scale)
 
 
 def held_adjustment(

@@ -194,7 +194,7 @@ def test_a_run_of_ground_images_placed_by_a_patch_is_ill_determined():
     but placed by a 1 m patch that the aerial images see are as uncertain as the patch leaves them (each
     image alone, with its points held fixed, looks well determined); placed by points spread over the
     facade they are determined, and drop_ill_determined keeps them."""
-    from services.pose_uncertainty import fit_position_std, joint_position_stds
+    from services.pose_uncertainty import fit_pose_stds, joint_position_stds
     from services.sfm.combined import drop_ill_determined
 
     rec, ids = _anchored_street(patch=True)
@@ -203,9 +203,9 @@ def test_a_run_of_ground_images_placed_by_a_patch_is_ill_determined():
     im = rec.images[ids["ground/G0002.jpg"]]
     obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
     m = np.asarray(im.cam_from_world().matrix())
-    alone = fit_position_std(
+    alone = fit_pose_stds(
         Pose(m[:, :3], m[:, 3]), CAM.K, np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
-    )
+    )[0]
     assert alone < 0.1 < 1.0 < min(stds.values())
     dropped = drop_ill_determined(rec, set(), 0.5)
     assert sorted(dropped) == ["ground/G0000.jpg", "ground/G0001.jpg", "ground/G0002.jpg"]

@@ -14,8 +14,7 @@ from services.pose_uncertainty import (
     DepthScale,
     attitude_std_deg,
     depth_scale_jacobian,
-    fit_attitude_std,
-    fit_position_std,
+    fit_pose_stds,
     position_std,
     projection_jacobian,
 )
@@ -87,11 +86,10 @@ def test_fit_std_takes_its_pixel_noise_from_the_residuals():
     rng = np.random.default_rng(3)
     kp, X = _points(rng, (50, 970), (50, 720))
     exact = position_std(POSE, CAM.K, X, 1.0)
-    assert fit_position_std(POSE, CAM.K, kp, X) == exact  # exact keypoints: the 1 px floor
+    assert fit_pose_stds(POSE, CAM.K, kp, X)[0] == exact  # exact keypoints: the 1 px floor
     noisy = kp + rng.normal(0, 3.0, kp.shape)
     rms = np.sqrt(np.mean(np.sum((noisy - kp) ** 2, 1)))
-    assert np.isclose(fit_position_std(POSE, CAM.K, noisy, X), rms * exact)
-    assert fit_position_std(POSE, CAM.K, kp[:2], X[:2]) == float("inf")
+    assert np.isclose(fit_pose_stds(POSE, CAM.K, noisy, X)[0], rms * exact)
 
 
 def test_a_consensus_of_few_inliers_verifies_matches_but_gives_no_pose():
@@ -161,11 +159,11 @@ def test_a_distant_facade_leaves_the_centre_uncertain_but_pins_the_attitude():
     rng = np.random.default_rng(11)
     kp, X = _points(rng, (200, 800), (200, 560), depth=DISTANT)
     assert position_std(POSE, CAM.K, X, 1.0) > transfer.default_conf["pnp"]["max_position_std_m"]
-    assert 0.0 < fit_attitude_std(POSE, CAM.K, kp, X) < 0.5
+    assert 0.0 < fit_pose_stds(POSE, CAM.K, kp, X)[1] < 0.5
     _, X_patch = _points(rng, (430, 600), (300, 440), depth=FACADE)
     assert attitude_std_deg(POSE, CAM.K, X_patch, 1.0) > 1.0
     assert attitude_std_deg(POSE, CAM.K, X, 2.0) == np.float64(2.0) * attitude_std_deg(POSE, CAM.K, X, 1.0)
-    assert fit_attitude_std(POSE, CAM.K, kp[:2], X[:2]) == float("inf")
+    assert fit_pose_stds(POSE, CAM.K, kp[:2], X[:2]) == (float("inf"), float("inf"))
 
 
 def test_the_reducer_ties_an_attitude_only_where_its_inliers_agree_with_the_pos():

@@ -14,7 +14,7 @@ import numpy as np
 
 from services.colmap_model import Camera, Pose
 from services.pos import DEFAULT_STD_ATT, DEFAULT_STD_XY, DEFAULT_STD_Z
-from services.pose_uncertainty import DepthScale, fit_attitude_std, fit_position_std
+from services.pose_uncertainty import DepthScale, fit_pose_stds
 from services.reduce.merge import Pairs
 from services.reduce.observations import image_set
 from services.reduce.prior_pnp import prior_gated_pnp, reprojection_errors
@@ -231,9 +231,8 @@ def _inlier_checks(
         scale = None
         if depth_centres is not None and pc.get("depth_scale_std"):
             scale = DepthScale(depth_centres[inl], float(pc["depth_scale_std"]))
-        std = fit_position_std(est.pose, camera.K, kp[inl], X[inl], scale=scale)
+        std, est.attitude_std_deg = fit_pose_stds(est.pose, camera.K, kp[inl], X[inl], scale=scale)
         est.position_std_m = std
-        est.attitude_std_deg = fit_attitude_std(est.pose, camera.K, kp[inl], X[inl], scale=scale)
         if pc.get("max_position_std_m") and std > pc["max_position_std_m"]:
             reasons.append(
                 f"position ill-determined by its inliers: std {std:.2f} m (> {pc['max_position_std_m']})"

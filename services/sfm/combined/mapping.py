@@ -42,7 +42,7 @@ def drop_ill_determined(
     (services.pose_uncertainty.joint_position_stds), so a run of ground images tied by their own points
     but placed by a few ill-spread aerial points is judged by those. Dropping an image can leave the
     others less determined: repeated until none is dropped. Returns {name: reason}."""
-    from services.pose_uncertainty import fit_position_std, joint_position_stds
+    from services.pose_uncertainty import fit_pose_stds, joint_position_stds
     from services.reduce import prior_agreement
 
     def candidates() -> list[pycolmap.Image]:
@@ -68,12 +68,12 @@ def drop_ill_determined(
             stds = {}
             for im in ims:
                 obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
-                stds[im.image_id] = fit_position_std(
+                stds[im.image_id] = fit_pose_stds(
                     pose_of_image(im),
                     np.asarray(im.camera.calibration_matrix()),
                     np.array([o[0] for o in obs], float).reshape(-1, 2),
                     np.array([o[1] for o in obs], float).reshape(-1, 3),
-                )
+                )[0]
         bad = [im for im in ims if stds.get(im.image_id, 0.0) > max_std]
         for im in bad:
             rec.deregister_frame(im.frame_id)
