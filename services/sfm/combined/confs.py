@@ -26,10 +26,11 @@ default_conf: dict[str, Any] = {
         # ... and, where both images have an attitude tied to the aerial images (the reducer's attitude_tied
         # PnP poses, their std at least tied_attitude_min_std_deg), a relative rotation within prior_sigmas
         # x their stds of those attitudes (at least min_tied_rotation_deg): on the demo's isprs two pairs of
-        # repeated facades (8 of 57 and 7 of 55 matches correct) passed the POS 6-8 degrees off them, the
-        # true pairs within 2, and one of them pulled an image a metre off
+        # repeated facades (8 of 57 and 7 of 55 matches correct) passed the POS 5.8-8.0 degrees off them and
+        # one pulled an image a metre off; the true pairs judged there and on isprs-walk stood 0.6-2.3
+        # degrees off, and a tied attitude can be 2 degrees off the truth: the floor halfway between
         "tied_attitude_min_std_deg": 0.5,
-        "min_tied_rotation_deg": 3.0,
+        "min_tied_rotation_deg": 4.0,
         # ... and of the calibrated camera: a pair whose matches an uncalibrated fundamental matrix explains
         # better than an essential matrix (COLMAP's UNCALIBRATED two-view configuration) is refused; on
         # isprs 3 of the 5 verified pairs without a correct match, none of the true ones
