@@ -98,9 +98,13 @@ REFUSAL_KINDS = {  # the start of a refused pair's reason (services.sfm.combined
 
 def refusal_kind(reason: str | None) -> str:
     """The check that refused a ground-ground pair, from its reason: calibrated, surface, consistency,
-    pos (its relative pose against the POS), or few (too few matches or inliers)."""
+    pos (its relative pose against the POS), attitudes (its rotation against the images' aerial-tied
+    attitudes, the POS agreeing), or few (too few matches or inliers)."""
+    first = (reason or "").split("; ")[0]
+    if first.startswith("relative rotation") and "aerial-tied attitudes" in first:
+        return "attitudes"
     for start, kind in REFUSAL_KINDS.items():
-        if (reason or "").startswith(start):
+        if first.startswith(start):
             return kind
     return "few"
 

@@ -69,6 +69,11 @@ def test_summary_counts_every_cause_and_names_the_images(bench):
         ("against the other pairs: its baseline stands 172 deg from where the other pairs", "consistency"),
         ("relative rotation 87.2 deg from the POS (> 14.7); baseline direction 143.2 deg", "pos"),
         ("baseline direction 131.0 deg from the POS (> 58.5)", "pos"),
+        ("relative rotation 5.8 deg from the images' aerial-tied attitudes (> 4.0)", "attitudes"),
+        (
+            "relative rotation 20.1 deg from the POS (> 14.7); relative rotation 21.0 deg from the images'",
+            "pos",
+        ),
         ("12 inliers (< 15)", "few"),
         (None, "few"),
     ],
