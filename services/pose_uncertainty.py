@@ -134,13 +134,6 @@ def position_std(
     return pose_stds(pose, K, X, sigma_px, scale)[0]
 
 
-def attitude_std_deg(
-    pose: Pose, K: np.ndarray, X: np.ndarray, sigma_px: float = 1.0, scale: DepthScale | None = None
-) -> float:
-    """Standard deviation (degrees) of the camera's attitude about its least determined axis."""
-    return pose_stds(pose, K, X, sigma_px, scale)[1]
-
-
 def fit_pose_stds(
     pose: Pose,
     K: np.ndarray,

@@ -12,9 +12,9 @@ from services.conf import merge_conf
 from services.geometry import look_at
 from services.pose_uncertainty import (
     DepthScale,
-    attitude_std_deg,
     depth_scale_jacobian,
     fit_pose_stds,
+    pose_stds,
     position_std,
     projection_jacobian,
 )
@@ -161,8 +161,8 @@ def test_a_distant_facade_leaves_the_centre_uncertain_but_pins_the_attitude():
     assert position_std(POSE, CAM.K, X, 1.0) > transfer.default_conf["pnp"]["max_position_std_m"]
     assert 0.0 < fit_pose_stds(POSE, CAM.K, kp, X)[1] < 0.5
     _, X_patch = _points(rng, (430, 600), (300, 440), depth=FACADE)
-    assert attitude_std_deg(POSE, CAM.K, X_patch, 1.0) > 1.0
-    assert attitude_std_deg(POSE, CAM.K, X, 2.0) == np.float64(2.0) * attitude_std_deg(POSE, CAM.K, X, 1.0)
+    assert pose_stds(POSE, CAM.K, X_patch, 1.0)[1] > 1.0
+    assert pose_stds(POSE, CAM.K, X, 2.0)[1] == np.float64(2.0) * pose_stds(POSE, CAM.K, X, 1.0)[1]
     assert fit_pose_stds(POSE, CAM.K, kp[:2], X[:2]) == (float("inf"), float("inf"))
 
 

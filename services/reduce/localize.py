@@ -30,7 +30,8 @@ class PoseEstimate:
     it) and `errors` (their reprojection errors, px) are None when no pose was found; `accepted` when
     every check passed (else `reason` says why); `consensus` when enough correspondences agree on one
     camera to verify matches even if the pose itself is not accepted; `attitude_tied` when its attitude
-    alone can be trusted (attitude_tied)."""
+    alone can be trusted though its position may not (a consensus through two views at least, agreeing
+    with the POS, its attitude pinned within pnp.max_attitude_std_deg)."""
 
     num_correspondences: int
     accepted: bool = False
@@ -213,7 +214,8 @@ def _inlier_checks(
     centre (with `depth_centres`, each view's depth scale a nuisance: DepthScale), how much of the image
     they cover, how many there are and their ratio, and (with `views`, the rendered view each
     correspondence came through) whether views other than the largest confirm them.
-    Sets est's position_std_m, attitude_std_deg, inlier_spread, inlier_views and consensus."""
+    Sets est's position_std_m, attitude_std_deg, inlier_spread, inlier_views, consensus and
+    attitude_tied (before the POS is checked)."""
     inl = est.inliers
     reasons = []
     confirmed = True
@@ -254,7 +256,10 @@ def _inlier_checks(
     # enough correspondences agree on one camera: they verify the matches even where the pose itself is
     # ill-determined (clustered or planar points) and fails the spread check above or the POS checks
     est.consensus = bool(n >= pc["min_inliers"] and inl.mean() >= pc["min_inlier_ratio"])
-    est.attitude_tied = est.consensus and confirmed
+    # its attitude can be trusted where its position cannot (distant points pin a turn, not a shift): the
+    # combined SfM checks ground pairs' relative rotations against it (services.sfm.combined)
+    max_att, att = pc.get("max_attitude_std_deg"), est.attitude_std_deg
+    est.attitude_tied = bool(est.consensus and confirmed and max_att and att is not None and att <= max_att)
     return reasons
 
 
@@ -288,11 +293,6 @@ def estimate_ground_pose(
         est.to_pos, est.limits, prior_reasons = prior_agreement(pose, prior, prior_std, pc)
         reasons += prior_reasons
         est.attitude_tied = est.attitude_tied and not prior_reasons
-    # its attitude alone can be trusted (a ground pair's relative rotation is checked against it,
-    # services.sfm.combined): a consensus through two views at least, agreeing with the POS, whose
-    # attitude the inliers pin (a position they leave metres uncertain still comes with a sharp turn)
-    max_att = pc.get("max_attitude_std_deg")
-    est.attitude_tied = bool(est.attitude_tied and max_att and (est.attitude_std_deg or np.inf) <= max_att)
     est.accepted = not reasons
     est.reason = "; ".join(reasons) if reasons else "ok"
     return est
