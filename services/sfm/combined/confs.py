@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from services.sfm.combined.consistency import default_conf as consistency_conf
+from services.sfm.combined.depths import default_conf as depths_conf
 from services.sfm.combined.surface import default_conf as surface_conf
 
 default_conf: dict[str, Any] = {
@@ -47,6 +48,10 @@ default_conf: dict[str, Any] = {
         # ... and whose baseline agrees with where the other pairs and the POS put its images (a
         # translation averaging; services.sfm.combined.consistency)
         "consistency": dict(consistency_conf),
+        # ... and whose matches put the scene where the other pairs of the same images put it (a repeated
+        # facade matched one window along the street fits the true relative pose; services.sfm.combined.
+        # depths: needs the consistency's solution for the baselines' lengths)
+        "depths": dict(depths_conf),
     },
     "seed_points": True,  # 3D points of the transferred tracks in the input model
     # ground images with an accepted PnP pose start registered, held at that pose ... (off: the mapper

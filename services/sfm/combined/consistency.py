@@ -47,6 +47,11 @@ default_conf: dict[str, Any] = {
     "min_length_m": 1.0,
     "min_length_share": 0.25,
     "max_refused": 50,  # pairs refused one by one (the worst, then the others solved again) at most
+    # with the lengths its matches' depths give a baseline (services.sfm.combined.depths): their noise,
+    # as a share of the length, and the factor beyond which a pair's length and where the solution puts
+    # its images disagree
+    "length_std_share": 0.15,
+    "max_length_ratio": 1.6,
 }
 
 
@@ -64,18 +69,22 @@ def solve_centres(
     min_lengths: dict[Pair, float],
     prior: dict[str, np.ndarray],
     prior_std: dict[str, tuple[float, float]],
-) -> dict[str, np.ndarray]:
+    lengths: dict[Pair, tuple[float, float, int]] | None = None,
+) -> tuple[dict[str, np.ndarray], dict[int, float]]:
     """The centres (3,) by name that best fit every pair's direction with a baseline of at least its
-    `min_lengths` (metres; each pair's rows weighted by `weights`) and the prior centres with their
-    (horizontal, vertical) noise."""
+    `min_lengths` (metres; each pair's rows weighted by `weights`), the baselines' relative `lengths`
+    where given ((length, its std, its group): the lengths their matches' depths give, each group's
+    known up to one scale, services.sfm.combined.depths) and the prior centres with their (horizontal,
+    vertical) noise; and each group's scale."""
     from scipy.optimize import lsq_linear
     from scipy.sparse import coo_matrix
 
     names = sorted(prior)
     index = {n: i for i, n in enumerate(names)}
+    groups = sorted({g for _, _, g in (lengths or {}).values()})
     n, m = len(names), len(directions)
-    origin = np.mean([prior[x] for x in names], axis=0)
     rows, cols, vals, rhs = [], [], [], []
+    origin = np.mean([prior[x] for x in names], axis=0)
     r = 0
     for e, ((a, b), u) in enumerate(directions.items()):
         s = math.sqrt(weights[(a, b)])
@@ -83,6 +92,13 @@ def solve_centres(
             rows += [r, r, r]
             cols += [3 * index[b] + k, 3 * index[a] + k, 3 * n + e]
             vals += [s, -s, -s * float(u[k])]
+            rhs.append(0.0)
+            r += 1
+        if (a, b) in (lengths or {}):  # (lambda - g L) / sd = 0
+            length, sd, g = (lengths or {})[(a, b)]
+            rows += [r, r]
+            cols += [3 * n + e, 3 * n + m + groups.index(g)]
+            vals += [1.0 / sd, -length / sd]
             rhs.append(0.0)
             r += 1
     for x in names:
@@ -93,11 +109,12 @@ def solve_centres(
             vals.append(1.0 / sd)
             rhs.append(float(prior[x][k] - origin[k]) / sd)
             r += 1
-    A = coo_matrix((vals, (rows, cols)), shape=(r, 3 * n + m)).tocsr()
-    lower = np.r_[np.full(3 * n, -np.inf), [min_lengths[p] for p in directions]]
-    sol = lsq_linear(A, np.asarray(rhs), bounds=(lower, np.full(3 * n + m, np.inf)), lsmr_tol="auto")
+    size = 3 * n + m + len(groups)
+    A = coo_matrix((vals, (rows, cols)), shape=(r, size)).tocsr()
+    lower = np.r_[np.full(3 * n, -np.inf), [min_lengths[p] for p in directions], np.full(len(groups), 1e-3)]
+    sol = lsq_linear(A, np.asarray(rhs), bounds=(lower, np.full(size, np.inf)), lsmr_tol="auto")
     C = sol.x[: 3 * n].reshape(n, 3) + origin
-    return {x: C[i] for x, i in index.items()}
+    return {x: C[i] for x, i in index.items()}, {g: float(sol.x[3 * n + m + i]) for i, g in enumerate(groups)}
 
 
 def pair_angles(directions: dict[Pair, np.ndarray], centres: dict[str, np.ndarray]) -> dict[Pair, float]:
@@ -117,14 +134,34 @@ def inconsistent_pairs(
     conf: dict[str, Any] | None = None,
     anchors: dict[str, tuple[Pose, PosStd]] | None = None,
     inliers: dict[Pair, int] | None = None,
+    lengths: dict[Pair, tuple[float, int]] | None = None,
 ) -> dict[Pair, str]:
     """The pairs refused by the others (see the module): {pair: reason}. `directions` maps each pair
     to its baseline's unit direction in the model's frame (pair_direction); `priors` and `prior_std` are
-    the images' POS poses and noise, `anchors` poses tied to the aerial images that replace them, and
-    `inliers` each pair's verified matches (a direction's noise shrinks with their square root)."""
+    the images' POS poses and noise, `anchors` poses tied to the aerial images that replace them,
+    `inliers` each pair's verified matches (a direction's noise shrinks with their square root) and
+    `lengths` the baselines' lengths their matches' depths give (see refused_and_centres)."""
+    return refused_and_centres(directions, priors, prior_std, conf, anchors, inliers, lengths)[0]
+
+
+def refused_and_centres(
+    directions: dict[Pair, np.ndarray],
+    priors: dict[str, Pose],
+    prior_std: dict[str, PosStd],
+    conf: dict[str, Any] | None = None,
+    anchors: dict[str, tuple[Pose, PosStd]] | None = None,
+    inliers: dict[Pair, int] | None = None,
+    lengths: dict[Pair, tuple[float, int]] | None = None,
+) -> tuple[dict[Pair, str], dict[str, np.ndarray]]:
+    """inconsistent_pairs's refusals, and the centres (3,) by name that the pairs it keeps and the priors
+    give (empty when the check is off or has fewer than two pairs). With `lengths` ((length, group): the
+    lengths the pairs' matches' depths give their baselines, each group's up to one scale, services.sfm.
+    combined.depths.baseline_lengths) the solution fits them too (within `length_std_share`), and a pair
+    whose images it puts more than `max_length_ratio` times farther apart or closer than its scaled
+    length is refused as well."""
     c = {**default_conf, **(conf or {})}
     if not c["enabled"] or len(directions) < 2:
-        return {}
+        return {}, {}
     prior, std = {}, {}
     for x in sorted({n for p in directions for n in p}):
         pose, s = (anchors or {}).get(x) or (priors[x], prior_std[x])
@@ -138,14 +175,35 @@ def inconsistent_pairs(
         shortest[(a, b)] = max(float(c["min_length_share"]) * length, float(c["min_length_m"]))
     dirs, out = dict(directions), {}
     limit = float(c["max_angle_deg"])
-    while len(out) < int(c["max_refused"]) and len(dirs) > 1:
-        angles = pair_angles(dirs, solve_centres(dirs, base, shortest, prior, std))
-        worst = max(angles, key=lambda p: angles[p])
-        if angles[worst] <= limit:
+    share = float(c["length_std_share"])
+    lens = {p: (L, share * L, g) for p, (L, g) in (lengths or {}).items() if p in dirs and L > 0}
+    log_limit = math.log(float(c["max_length_ratio"]))
+    while len(out) < int(c["max_refused"]):
+        centres, scales = solve_centres(dirs, base, shortest, prior, std, lens)
+        if len(dirs) < 2:
             break
-        out[worst] = (
-            f"its baseline stands {angles[worst]:.0f} deg from where the other pairs and the POS put its "
-            f"images (> {limit:.0f})"
-        )
+        angles = pair_angles(dirs, centres)
+        ratios = {
+            p: float(np.linalg.norm(centres[p[1]] - centres[p[0]])) / (L * scales[g])
+            for p, (L, _, g) in lens.items()
+        }
+        score = {
+            p: max(angles[p] / limit, abs(math.log(max(ratios.get(p, 1.0), 1e-9))) / log_limit) for p in dirs
+        }
+        worst = max(score, key=lambda p: score[p])
+        if score[worst] <= 1.0:
+            break
+        if angles[worst] > limit:
+            out[worst] = (
+                f"its baseline stands {angles[worst]:.0f} deg from where the other pairs and the POS put "
+                f"its images (> {limit:.0f})"
+            )
+        else:
+            out[worst] = (
+                f"its matches' depths make its baseline {1.0 / ratios[worst]:.2f}x as long as where the "
+                f"other pairs and the POS put its images (beyond {c['max_length_ratio']:.1f}x either way: "
+                "a repeated facade matched along the street)"
+            )
         dirs.pop(worst)
-    return out
+        lens.pop(worst, None)
+    return out, centres

@@ -410,7 +410,8 @@ def _write_ground_ground(
         if len(inl):
             verified[(g0, g1)] = inl
         prog((i + 1) / max(len(gp), 1), f"ground pair {i + 1}/{len(gp)}")
-    refused = _against_each_other(cdb.ground_pairs, verified, priors, prior_std, anchors, conf)
+    args = (g_feats, camera, priors, prior_std, anchors, conf)
+    refused = _against_each_other(cdb.ground_pairs, verified, *args)
     for pair, why in refused.items():
         cdb.ground_pairs[" ".join(pair)].update(accepted=False, reason=f"against the other pairs: {why}")
         verified.pop(pair)
@@ -423,6 +424,8 @@ def _write_ground_ground(
 def _against_each_other(
     records: dict[str, dict[str, Any]],
     verified: dict[tuple[str, str], np.ndarray],
+    g_feats: dict,
+    camera: Camera,
     priors: dict[str, Pose],
     prior_std: dict[str, PosStd],
     anchors: dict[str, tuple[Pose, PosStd]] | None,
@@ -430,19 +433,28 @@ def _against_each_other(
 ) -> dict[tuple[str, str], str]:
     """The verified pairs whose baselines the others refuse (services.sfm.combined.consistency), each
     pair's direction turned into the model's frame by its first image's attitude (aerial-tied where the
-    reducer has it, else the POS)."""
+    reducer has it, else the POS), and its length, where conf["depths"] is on, the one its matches' depths
+    give it against the other pairs' (services.sfm.combined.depths)."""
     from services.sfm.combined.consistency import inconsistent_pairs, pair_direction
+    from services.sfm.combined.depths import PairMatches, baseline_lengths
 
     cc = conf.get("consistency", {})
     if not cc.get("enabled", False):
         return {}
-    dirs = {}
+    dirs, matches = {}, {}
     for g0, g1 in verified:
         rel = records[f"{g0} {g1}"]["cam2_from_cam1"]
+        R, t = np.asarray(rel["R"], float), np.asarray(rel["t"], float)
         first = (anchors or {}).get(g0, (priors[g0], None))[0]
-        dirs[(g0, g1)] = pair_direction(np.asarray(rel["R"], float), np.asarray(rel["t"], float), first)
+        dirs[(g0, g1)] = pair_direction(R, t, first)
+        inl = verified[(g0, g1)]
+        kp0 = np.asarray(g_feats[g0]["keypoints"], float)[inl[:, 0], :2]
+        kp1 = np.asarray(g_feats[g1]["keypoints"], float)[inl[:, 1], :2]
+        matches[(g0, g1)] = PairMatches(kp0, kp1, R, t)
     sizes = {p: len(inl) for p, inl in verified.items()}
-    return inconsistent_pairs(dirs, priors, prior_std, cc, anchors, sizes)
+    pos = {(a, b): float(np.linalg.norm(priors[b].center - priors[a].center)) for a, b in verified}
+    lengths = baseline_lengths(matches, pos, camera.K, conf.get("depths", {"enabled": False}))
+    return inconsistent_pairs(dirs, priors, prior_std, cc, anchors, sizes, lengths)
 
 
 def _ground_names(transfer_matches: Path) -> set[str]:
