@@ -409,3 +409,26 @@ def test_the_profile_sets_the_aerial_sfm_and_the_3dgs_size(tmp_path) -> None:
     assert sfm["features"]["max_image_size"] == 2000 and splat["strategy"]["max_gaussians"] == 0
     sfm, _ = confs(sfm_features="aliked")
     assert sfm["features"]["type"] == "aliked" and sfm["features"]["max_image_size"] == 1600  # SIFT's only
+
+
+def test_every_stage_runs_on_the_jobs_torch_threads(tiny_job, monkeypatch):
+    """settings["torch_threads"] holds in every stage (the planning ran on torch's default two threads
+    beside the demo's baselines, 5x slower), not only in those that set it themselves."""
+    import torch
+
+    job, _, _ = tiny_job
+    seen = []
+    monkeypatch.setitem(
+        pipeline.REGISTRY,
+        "plan_views",
+        dataclasses.replace(
+            pipeline.REGISTRY["plan_views"], run=lambda j, r: seen.append(torch.get_num_threads()) or {}
+        ),
+    )
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        pipeline.run_stage(pipeline.Job.load(job.root), "plan_views", force=True)
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1]

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
-from services.pipeline import STAGES, JobOptions
+from services.pipeline import STAGES, JobOptions, set_threads
 from shared.config import Settings
 from shared.db import crud
 from shared.db.models import TERMINAL_JOB_STATUSES, Job, JobStatus, StageRun, StageStatus, utcnow
@@ -573,6 +573,7 @@ def _execute_unit(
     if info.forced:  # the unit's result from an earlier attempt is computed anew
         (job.root / fan.marker(unit)).unlink(missing_ok=True)
     t0 = time.perf_counter()
+    set_threads(job)
     paths = fan.unit(job, unit, lambda f, m: reporter(stage, (before + f) / max(len(names), 1), m))
     seconds = time.perf_counter() - t0
     _push(ctx, info, job, paths, f"{stage}.unit.{unit}")

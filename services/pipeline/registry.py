@@ -23,7 +23,6 @@ from services.pipeline.stages import (
     run_render_views,
     run_splat_all,
     run_train_splat,
-    set_threads,
     train_block_unit,
     view_names,
 )
@@ -56,7 +55,6 @@ def run_fanout(stage: str) -> Callable[[Job, Callable[[float, str], None]], dict
     def run(job: Job, report: Callable[[float, str], None]) -> dict:
         fan = REGISTRY[stage].fanout
         assert fan is not None, f"stage {stage} is not a fan-out"
-        set_threads(job)
         report(0.0, "preparing the units")
         fan.prepare(job)
         names = fan.units(job)

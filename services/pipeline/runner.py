@@ -13,7 +13,7 @@ from typing import Any
 
 from services.pipeline.job import Job
 from services.pipeline.registry import OPTIONAL_STAGES, REGISTRY, STAGES
-from services.pipeline.stages import StageError
+from services.pipeline.stages import StageError, set_threads
 
 Progress = Callable[[str, float, str], None]
 
@@ -125,6 +125,7 @@ def run_stage(job: Job, stage: str, progress: Progress | None = None, force: boo
     check_inputs(job, stage)
     prog(stage, 0.0, "started")
     t0 = time.perf_counter()
+    set_threads(job)  # every stage: torch's default threads beside another process stall 5x (plan_views)
     summary = sd.run(job, lambda f, m: prog(stage, float(min(max(f, 0.0), 1.0)), m))
     missing = [str(p) for p in sd.outputs(job) if not Path(p).exists()]
     if missing:

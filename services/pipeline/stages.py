@@ -373,7 +373,6 @@ def combined_reconstruction(job: Job, out_dir: Path, report=None) -> Path:
 
 
 def run_combined_sfm(job: Job, report) -> dict:
-    set_threads(job)
     combined_reconstruction(job, job.combined.dir, report)
     rep = json.loads((job.combined.report).read_text())
     keys = ("NRI", "num_registered", "num_images", "num_points3D", "causes")
@@ -381,6 +380,10 @@ def run_combined_sfm(job: Job, report) -> dict:
 
 
 def set_threads(job: Job) -> None:
+    """torch's threads for the job's stages (settings["torch_threads"]; None: left as they are). On a
+    2-core machine with another process beside (the demo's baselines), torch's default two threads wait
+    on each other at every op: the planning of isprs-walk's views took 81-90 s on two threads, 15.8 s
+    on one (docs/measurements.md)."""
     n = job.settings.get("torch_threads")
     if n:
         import torch
