@@ -16,6 +16,10 @@ translation averaging, by bounded least squares (scipy's lsq_linear), reweighted
 Cauchy loss on each pair's angle so that a wrong pair does not drag the others. A pair whose direction
 then stands more than `max_angle_deg` from the baseline the solution puts between its images is refused.
 A pair nothing else constrains (a bridge between two parts) is what the solution follows: kept.
+Where the pairs' matches' depths give their baselines' lengths (services.sfm.combined.depths: on a walk
+the cameras stand nearly on a line, where the directions cannot tell lengths), the solution fits those
+too, each group of them up to a scale of its own, and a pair whose length disagrees with where the
+others put its images (a repeated facade matched along the street, its relative pose true) is refused.
 
     refused = inconsistent_pairs(directions, priors, prior_std, conf)   # {(a, b): reason}
 
@@ -138,30 +142,15 @@ def inconsistent_pairs(
 ) -> dict[Pair, str]:
     """The pairs refused by the others (see the module): {pair: reason}. `directions` maps each pair
     to its baseline's unit direction in the model's frame (pair_direction); `priors` and `prior_std` are
-    the images' POS poses and noise, `anchors` poses tied to the aerial images that replace them,
-    `inliers` each pair's verified matches (a direction's noise shrinks with their square root) and
-    `lengths` the baselines' lengths their matches' depths give (see refused_and_centres)."""
-    return refused_and_centres(directions, priors, prior_std, conf, anchors, inliers, lengths)[0]
-
-
-def refused_and_centres(
-    directions: dict[Pair, np.ndarray],
-    priors: dict[str, Pose],
-    prior_std: dict[str, PosStd],
-    conf: dict[str, Any] | None = None,
-    anchors: dict[str, tuple[Pose, PosStd]] | None = None,
-    inliers: dict[Pair, int] | None = None,
-    lengths: dict[Pair, tuple[float, int]] | None = None,
-) -> tuple[dict[Pair, str], dict[str, np.ndarray]]:
-    """inconsistent_pairs's refusals, and the centres (3,) by name that the pairs it keeps and the priors
-    give (empty when the check is off or has fewer than two pairs). With `lengths` ((length, group): the
-    lengths the pairs' matches' depths give their baselines, each group's up to one scale, services.sfm.
-    combined.depths.baseline_lengths) the solution fits them too (within `length_std_share`), and a pair
-    whose images it puts more than `max_length_ratio` times farther apart or closer than its scaled
-    length is refused as well."""
+    the images' POS poses and noise, `anchors` poses tied to the aerial images that replace them and
+    `inliers` each pair's verified matches (a direction's noise shrinks with their square root). With
+    `lengths` ((length, group): the lengths the pairs' matches' depths give their baselines, each group's
+    up to one scale, services.sfm.combined.depths.baseline_lengths) the solution fits them too (within
+    `length_std_share`), and a pair whose images it puts more than `max_length_ratio` times farther apart
+    or closer than its scaled length is refused as well."""
     c = {**default_conf, **(conf or {})}
     if not c["enabled"] or len(directions) < 2:
-        return {}, {}
+        return {}
     prior, std = {}, {}
     for x in sorted({n for p in directions for n in p}):
         pose, s = (anchors or {}).get(x) or (priors[x], prior_std[x])
@@ -206,4 +195,4 @@ def refused_and_centres(
             )
         dirs.pop(worst)
         lens.pop(worst, None)
-    return out, centres
+    return out
