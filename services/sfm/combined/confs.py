@@ -49,8 +49,8 @@ default_conf: dict[str, Any] = {
         # translation averaging; services.sfm.combined.consistency)
         "consistency": dict(consistency_conf),
         # ... and whose matches put the scene where the other pairs of the same images put it (a repeated
-        # facade matched one window along the street fits the true relative pose; services.sfm.combined.
-        # depths: needs the consistency's solution for the baselines' lengths)
+        # facade matched one window along the street fits the true relative pose): the baselines' lengths
+        # their depths give (services.sfm.combined.depths), fitted by the consistency's solution too
         "depths": dict(depths_conf),
     },
     "seed_points": True,  # 3D points of the transferred tracks in the input model

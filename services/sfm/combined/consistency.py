@@ -85,10 +85,10 @@ def solve_centres(
 
     names = sorted(prior)
     index = {n: i for i, n in enumerate(names)}
-    groups = sorted({g for _, _, g in (lengths or {}).values()})
+    groups = {g: i for i, g in enumerate(sorted({g for _, _, g in (lengths or {}).values()}))}
     n, m = len(names), len(directions)
-    rows, cols, vals, rhs = [], [], [], []
     origin = np.mean([prior[x] for x in names], axis=0)
+    rows, cols, vals, rhs = [], [], [], []
     r = 0
     for e, ((a, b), u) in enumerate(directions.items()):
         s = math.sqrt(weights[(a, b)])
@@ -101,7 +101,7 @@ def solve_centres(
         if (a, b) in (lengths or {}):  # (lambda - g L) / sd = 0
             length, sd, g = (lengths or {})[(a, b)]
             rows += [r, r]
-            cols += [3 * n + e, 3 * n + m + groups.index(g)]
+            cols += [3 * n + e, 3 * n + m + groups[g]]
             vals += [1.0 / sd, -length / sd]
             rhs.append(0.0)
             r += 1
@@ -118,7 +118,7 @@ def solve_centres(
     lower = np.r_[np.full(3 * n, -np.inf), [min_lengths[p] for p in directions], np.full(len(groups), 1e-3)]
     sol = lsq_linear(A, np.asarray(rhs), bounds=(lower, np.full(size, np.inf)), lsmr_tol="auto")
     C = sol.x[: 3 * n].reshape(n, 3) + origin
-    return {x: C[i] for x, i in index.items()}, {g: float(sol.x[3 * n + m + i]) for i, g in enumerate(groups)}
+    return {x: C[i] for x, i in index.items()}, {g: float(sol.x[3 * n + m + i]) for g, i in groups.items()}
 
 
 def pair_angles(directions: dict[Pair, np.ndarray], centres: dict[str, np.ndarray]) -> dict[Pair, float]:

@@ -19,10 +19,10 @@ repeated facade gets a length its neighbours' ratios agree with but the baseline
 translation averaging (services.sfm.combined.consistency) then finds its images twice or six times
 closer than that length, and refuses it.
 
-    lengths = baseline_lengths(pairs, pos_lengths, K, conf)   # {(a, b): metres}
+    lengths = baseline_lengths(pairs, pos_lengths, K, conf)   # {(a, b): (metres, group)}
 
 Shapes: a pair's keypoints (k, 2) in each image, pixels; its relative pose cam2_from_cam1, R (3, 3) and
-t (3,) (any length: scaled to `lengths`); K (3, 3) the ground camera's.
+t (3,) (any length); K (3, 3) the ground camera's.
 """
 
 from __future__ import annotations
@@ -121,19 +121,17 @@ def baseline_lengths(
     if not c["enabled"] or not names:
         return {}
     index = {p: i for i, p in enumerate(names)}
-    ties = [
-        t for t in length_ties({p: pairs[p] for p in names}, K, float(c["radius_px"]), int(c["min_links"]))
-    ]
+    ties = length_ties({p: pairs[p] for p in names}, K, float(c["radius_px"]), int(c["min_links"]))
     n = len(names)
     prior = np.log([pos_lengths[p] for p in names])
     w_prior = 1.0 / float(c["pos_std"]) ** 2
-    l = prior.copy()
-    for _ in range(max(int(c["iterations"]), 1)):
+    log_len = prior.copy()
+    for _ in range(max(int(c["iterations"]), 1)):  # Gauss-Newton, each tie reweighted (Cauchy)
         H = np.eye(n) * w_prior
         g = w_prior * prior
-        for p, q, r, k in ties:  # l_p - l_q = r
+        for p, q, r, k in ties:  # log L_p - log L_q = r
             i, j = index[p], index[q]
-            e = l[i] - l[j] - r
+            e = log_len[i] - log_len[j] - r
             w = min(k, c["link_reference"]) / float(c["link_reference"]) / float(c["link_std"]) ** 2
             w /= 1.0 + (e / float(c["loss_scale"])) ** 2
             H[i, i] += w
@@ -143,18 +141,20 @@ def baseline_lengths(
             g[i] += w * r
             g[j] -= w * r
         new = np.linalg.solve(H, g)
-        if float(np.abs(new - l).max()) < 1e-6:
-            l = new
+        step, log_len = float(np.abs(new - log_len).max()), new
+        if step < 1e-6:
             break
-        l = new
-    group = list(range(n))  # the ties' connected components (union-find)
+    groups = _groups(ties, index)
+    return {p: (float(np.exp(log_len[i])), int(groups[i])) for p, i in index.items()}
 
-    def root(i: int) -> int:
-        while group[i] != i:
-            group[i] = group[group[i]]
-            i = group[i]
-        return i
 
-    for p, q, _, _ in ties:
-        group[root(index[p])] = root(index[q])
-    return {p: (float(np.exp(l[index[p]])), root(index[p])) for p in names}
+def _groups(ties: list[tuple[Pair, Pair, float, int]], index: dict[Pair, int]) -> np.ndarray:
+    """Each pair's group (n,): the connected components of the ties."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(index)
+    rows = [index[p] for p, _, _, _ in ties]
+    cols = [index[q] for _, q, _, _ in ties]
+    graph = coo_matrix((np.ones(len(ties)), (rows, cols)), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
