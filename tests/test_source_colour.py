@@ -194,3 +194,33 @@ def test_a_view_across_the_plane_from_the_sources_takes_their_colour_through_its
     err = np.abs(rgb.astype(float) - truth.astype(float)).mean(axis=2)[has]
     shifted = np.abs(rgb.astype(float) - np.roll(truth, 2, axis=1).astype(float)).mean(axis=2)[has]
     assert np.median(err) < 0.5 * np.median(shifted), (np.median(err), np.median(shifted))
+
+
+@pytest.mark.parametrize("with_depth", [True, False])
+@pytest.mark.parametrize("with_normal", [True, False])
+def test_the_compiled_score_is_numpys(plane_survey, with_depth, with_normal):
+    """A pinhole source's score over float32 points (one compiled pass) equals the NumPy pass's (float64
+    points): the same points kept, their pixels, penalties and ground sampling; a nearer surface in the
+    source's depth and the normals' incidence judged alike."""
+    root, _, _, _ = plane_survey
+    src = SourceImages(root / "sparse", root / "images", {"max_angle_deg": 25.0, "max_incidence_deg": 60.0})
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-25, 25, (20000, 2)), rng.uniform(-1, 6, 20000)]
+    view = np.array([-2.0, -9.0, 12.0])
+    ray_v = (X - view) / np.linalg.norm(X - view, axis=1, keepdims=True)
+    normal = np.tile([0.0, 0.0, 1.0], (len(X), 1))
+    normal[::7] = np.nan  # unknown normals
+    depth_fn = (lambda c, p: np.clip(_plane_depth(c, p), 0, 30.0)) if with_depth else None
+    n = normal if with_normal else None
+    kept = 0
+    for s in src.sources:
+        assert s["pinhole"] is not None
+        i64, uv64, pen64, gsd64 = src.score(s, X, ray_v, depth_fn, n)
+        i32, uv32, pen32, gsd32 = src.score(s, X.astype(np.float32), ray_v.astype(np.float32), depth_fn, n)
+        kept += len(i64)
+        common, a, b = np.intersect1d(i64, i32, return_indices=True)
+        assert len(common) >= 0.999 * max(len(i64), len(i32))  # float32 rounding at the borders only
+        np.testing.assert_allclose(uv32[b], uv64[a], atol=0.02)
+        np.testing.assert_allclose(pen32[b], pen64[a], atol=0.02)
+        np.testing.assert_allclose(gsd32[b], gsd64[a], rtol=1e-4)
+    assert 0 < kept < len(X)

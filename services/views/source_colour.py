@@ -302,6 +302,8 @@ class SourceImages:
         max_incidence_deg of it; not hidden in its 3DGS depth unless depth_fn is None): (indices, pixels,
         penalties, metres per pixel)."""
         c = self.conf
+        if src["pinhole"] is not None and X.dtype == np.float32:  # the compiled pass (the colour's points)
+            return self._score_compiled(src, X, ray_v, depth_fn, normal)
         idx, uv, z = self.inside(src, X)
         if len(idx) == 0:
             return idx, uv, z, z
@@ -321,6 +323,33 @@ class SourceImages:
         angle = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
         penalty = angle + float(c["resolution_weight_deg"]) * np.log2(np.maximum(gsd, 1e-6))
         return idx, uv, penalty, gsd
+
+    def _score_compiled(
+        self, src: dict, X: np.ndarray, ray_v: np.ndarray, depth_fn: DepthFn | None, normal: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """`score` of a pinhole source over float32 points in one compiled pass (source_kernels)."""
+        from services.views.source_kernels import score_pinhole
+
+        c = self.conf
+        sp: Pose = src["pose"]
+        dmap, s = self.depth(src, depth_fn) if depth_fn is not None else (np.zeros((0, 0), np.float32), 1.0)
+        use_normal = normal is not None and bool(c["max_incidence_deg"])
+        limits = np.array(
+            [
+                np.cos(np.radians(float(c["max_angle_deg"]))),
+                np.cos(np.radians(float(c["max_incidence_deg"]))) if use_normal else -3.0,
+                float(c["visibility_rel"]),
+                float(c["visibility_abs_m"]),
+                float(src["camera"].mean_focal_length()),
+                float(c["resolution_weight_deg"]),
+            ]
+        )
+        f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
+        return score_pinhole(
+            f32(X), f32(ray_v), f32(normal) if use_normal else np.zeros((0, 3), np.float32),
+            f32(sp.R), f32(sp.t), f32(sp.center), np.asarray(src["pinhole"], np.float64),
+            np.array([src["camera"].width, src["camera"].height], np.float64), f32(dmap), float(s), limits,
+        )  # fmt: skip
 
     def best_sources(self, X: np.ndarray, ray_v: np.ndarray, depth_fn: DepthFn | None, k: int) -> list[int]:
         """Indices of at most k sources, those that are the best or second best (lowest penalty of
