@@ -102,6 +102,8 @@ def baseline_reconstruction(job, label: str, match_file: Path, match_conf: dict,
         tdir,
     )
     fpath = out_dir / "features" / f"{feature_conf(match_conf)['output']}.h5"
+    if job.features_path.name == fpath.name and job.features_path.is_file():
+        fpath = job.features_path  # midview's features: the ground pairs' matches cached beside them reused
     return combined_sfm.main(
         job.combined_conf(),
         job.sfm.dir,

@@ -33,7 +33,9 @@ confs: dict[str, dict[str, Any]] = {
     },
     "aliked-lightglue": {
         "features": "aliked",
-        "matcher": {"name": "lightglue", "features": "aliked"},
+        # LightGlue's own threshold, stated: the same matcher conf as the views' (services.matching.views),
+        # so the combined SfM's ground pairs matched for one are cached for the other
+        "matcher": {"name": "lightglue", "features": "aliked", "filter_threshold": 0.1},
         "ransac": RANSAC,
     },
 }

@@ -387,15 +387,18 @@ def _write_ground_ground(
     surface: SurfaceCheck | None = None,
     anchors: dict[str, tuple[Pose, PosStd]] | None = None,
     attitudes: dict[str, Attitude] | None = None,
+    pair_cache: Path | None = None,
 ) -> int:
-    """Ground pairs from the POS, matched and verified (verify_ground_pair, then against the aerial
-    surface when `surface` is given); the number written."""
-    from services.matching import match_features
+    """Ground pairs from the POS, matched (their matches kept in `pair_cache`, services.sfm.combined.
+    pair_cache) and verified (verify_ground_pair, then against the aerial surface when `surface` is
+    given); the number written."""
+    from services.sfm.combined.pair_cache import match_ground_pairs
 
     gp = ground_pairs(priors, sorted(g_feats), conf)
+    putative = match_ground_pairs(g_feats, gp, match_conf["matcher"], pair_cache, prog=prog)
     verified: dict[tuple[str, str], np.ndarray] = {}
-    for i, (g0, g1) in enumerate(gp):
-        mm, _ = match_features(g_feats[g0], g_feats[g1], match_conf["matcher"])
+    for g0, g1 in gp:
+        mm = putative[(g0, g1)]
         f0, f1 = g_feats[g0]["keypoints"], g_feats[g1]["keypoints"]
         tied = ((attitudes or {}).get(g0), (attitudes or {}).get(g1))
         inl, rec = verify_ground_pair(
@@ -409,7 +412,6 @@ def _write_ground_ground(
         cdb.ground_pairs[f"{g0} {g1}"] = rec
         if len(inl):
             verified[(g0, g1)] = inl
-        prog((i + 1) / max(len(gp), 1), f"ground pair {i + 1}/{len(gp)}")
     args = (g_feats, camera, priors, prior_std, anchors, conf)
     refused = _against_each_other(cdb.ground_pairs, verified, *args)
     for pair, why in refused.items():
@@ -481,6 +483,7 @@ def build_database(
     matches (transfer_dir) and the ground images' matching features (cache feature_path, extracted from
     image_dir where it lacks them); the ground images are those of the reducer's matches and of the POS."""
     from services.reduce import ground_priors
+    from services.sfm.combined.pair_cache import pair_cache_path
     from shared.matchfile import MatchFile
 
     priors, prior_std = ground_priors(pos, aerial_dir / "georef.json")
@@ -501,7 +504,8 @@ def build_database(
         args = (g_feats, ground_camera, priors, prior_std, match_conf, conf["ground_pairs"], prog)
         check = surface_check(aerial_dir, ground_camera, conf["ground_pairs"])
         tied = aerial_tied_attitudes(transfer_dir, float(conf["ground_pairs"]["tied_attitude_min_std_deg"]))
-        n_gg = _write_ground_ground(db, cdb, *args, check, aerial_tied_poses(transfer_dir), tied)
+        cache = pair_cache_path(feature_path, match_conf["matcher"])
+        n_gg = _write_ground_ground(db, cdb, *args, check, aerial_tied_poses(transfer_dir), tied, cache)
     finally:
         db.close()
     logger.info(
