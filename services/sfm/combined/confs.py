@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from services.sfm.combined.ambiguity import default_conf as ambiguity_conf
 from services.sfm.combined.consistency import default_conf as consistency_conf
 from services.sfm.combined.depths import default_conf as depths_conf
 from services.sfm.combined.surface import default_conf as surface_conf
@@ -75,6 +76,10 @@ default_conf: dict[str, Any] = {
     # the bundle adjustment's covariance, pixel noise at least 1 px: services.pose_uncertainty.
     # joint_position_stds; None: kept), or when their pose disagrees with their POS (the reducer's limits)
     "max_position_std_m": 0.5,
+    # ... or when their verified matches fit two poses alike: the best pose's inliers, and among the rest
+    # a second pose with at least min_ratio of them, min_separation_m away (services.sfm.combined.ambiguity:
+    # half of a pair's matches a repeated facade shifted by a window)
+    "ambiguity": dict(ambiguity_conf),
     "pos_limits": None,  # those POS limits: the reducer's conf["pnp"] (None: services.reduce's defaults)
     "mapping": {
         "min_num_matches": 15,  # pairs with fewer matches are ignored by the mapper

@@ -33,14 +33,18 @@ def drop_ill_determined(
     priors: dict[str, Pose] | None = None,
     prior_std: dict[str, tuple[float, float, float]] | None = None,
     pnp_conf: dict | None = None,
+    db_path: Path | None = None,
+    ambiguity: dict | None = None,
 ) -> dict[str, str]:
     """Deregister the ground images the mapper registered (not those of `fixed`, held at the reducer's
     PnP pose) whose pose disagrees with their POS (with `priors` and `pnp_conf`, the reducer's POS
-    limits, services.reduce: a repeated facade can register an image far from where it was taken), or
-    whose centre the model determines worse than `max_std` metres: the standard deviation along the
-    worst direction from the covariance of the model's bundle adjustment with the other images held
-    (services.pose_uncertainty.joint_position_stds), so a run of ground images tied by their own points
-    but placed by a few ill-spread aerial points is judged by those. Dropping an image can leave the
+    limits, services.reduce: a repeated facade can register an image far from where it was taken), whose
+    verified matches (`db_path`'s) fit two poses alike (with `ambiguity`, services.sfm.combined.ambiguity:
+    half of a pair's matches a window along the street), or whose centre the model determines worse than
+    `max_std` metres: the standard deviation along the worst direction from the covariance of the model's
+    bundle adjustment with the other images held (services.pose_uncertainty.joint_position_stds), so a
+    run of ground images tied by their own points but placed by a few ill-spread aerial points is judged
+    by those. Dropping an image can leave the
     others less determined: repeated until none is dropped. Returns {name: reason}."""
     from services.pose_uncertainty import fit_pose_stds, joint_position_stds
     from services.reduce import prior_agreement
@@ -61,6 +65,15 @@ def drop_ill_determined(
                 if reasons:
                     rec.deregister_frame(im.frame_id)
                     out[im.name] = "; ".join(reasons)
+    if db_path is not None and ambiguity:
+        from services.sfm.combined.ambiguity import ambiguous_images
+
+        for image_id, hyp in ambiguous_images(
+            rec, [im.image_id for im in candidates()], str(db_path), ambiguity
+        ).items():
+            im = rec.images[image_id]
+            rec.deregister_frame(im.frame_id)
+            out[im.name] = hyp.reason()
     while max_std:
         ims = candidates()
         stds = joint_position_stds(rec, [im.image_id for im in ims]) if ims else {}
@@ -302,7 +315,9 @@ def settle_ground(
             )
     held = registered_ground(seed)
     max_std = conf["max_position_std_m"]
-    dropped = drop_ill_determined(rec, held, max_std, cdb.priors, cdb.prior_std, pos_limits)
+    dropped = drop_ill_determined(
+        rec, held, max_std, cdb.priors, cdb.prior_std, pos_limits, cdb.path, conf["ambiguity"]
+    )
     refined = {g: m for g, m in refined.items() if g not in dropped}
     if dropped:
         logger.info(

@@ -24,7 +24,8 @@ CAUSES = {
     "views-without-ties": "its views gave no aerial tie",
     "ties-without-pose": "aerial ties or pairs with registered images, too few or too weak for a pose",
     "chained-to-unregistered": "verified pairs only with ground images that are not registered",
-    "ambiguous": "a pose was found, but it disagrees with its POS or is ill-determined, so it was dropped",
+    "ambiguous": "a pose was found, but it disagrees with its POS, is ill-determined or competes with a"
+    " second pose its matches fit alike, so it was dropped",
 }
 MIN_VIEW_AERIAL_FRACTION = 0.1  # a view coloured from the aerial images over less than this shows them little
 
