@@ -115,15 +115,11 @@ def image_correspondences(
     return np.asarray(kp, float).reshape(-1, 2), np.asarray(X, float).reshape(-1, 3)
 
 
-def verified_matches(db_path: str, image_ids: set[int]) -> dict[int, dict[int, np.ndarray]]:
+def verified_matches(db: pycolmap.Database, image_ids: set[int]) -> dict[int, dict[int, np.ndarray]]:
     """The database's verified matches of `image_ids`: {image id: {other id: (M, 2) its keypoint, the
     other's}}."""
     out: dict[int, dict[int, np.ndarray]] = {i: {} for i in image_ids}
-    db = pycolmap.Database.open(str(db_path))
-    try:
-        pair_ids, geometries = db.read_two_view_geometries()
-    finally:
-        db.close()
+    pair_ids, geometries = db.read_two_view_geometries()
     for pid, tvg in zip(pair_ids, geometries, strict=True):
         a, b = pycolmap.pair_id_to_image_pair(pid)
         m = np.asarray(tvg.inlier_matches).reshape(-1, 2)
@@ -146,9 +142,9 @@ def ambiguous_images(
     db = pycolmap.Database.open(str(db_path))
     try:
         keypoints = {i: db.read_keypoints(i)[:, :2].astype(np.float64) for i in candidates}
+        matches = verified_matches(db, set(candidates))
     finally:
         db.close()
-    matches = verified_matches(db_path, set(candidates))
     out, seen = {}, []
     for i in candidates:
         kp, X = image_correspondences(rec, i, matches[i], keypoints[i])

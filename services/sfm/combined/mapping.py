@@ -44,8 +44,8 @@ def drop_ill_determined(
     `max_std` metres: the standard deviation along the worst direction from the covariance of the model's
     bundle adjustment with the other images held (services.pose_uncertainty.joint_position_stds), so a
     run of ground images tied by their own points but placed by a few ill-spread aerial points is judged
-    by those. Dropping an image can leave the
-    others less determined: repeated until none is dropped. Returns {name: reason}."""
+    by those. Dropping an image can leave the others less determined: repeated until none is dropped.
+    Returns {name: reason}."""
     from services.pose_uncertainty import fit_pose_stds, joint_position_stds
     from services.reduce import prior_agreement
 
