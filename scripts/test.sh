@@ -28,9 +28,24 @@ if ! command -v redis-server >/dev/null && command -v apt-get >/dev/null; then
     || (apt-get update -qq && apt-get install -y -qq redis-server >/dev/null 2>&1)) \
     || echo "test: redis-server could not be installed; the fault tests will be skipped"
 fi
-set +e
-"$VENV/bin/python" -m pytest -ra --durations=25 "$@"  # the 25 slowest tests: where the suite's time goes
-rc=$?
-set -e
-if [ $rc -eq 5 ]; then echo "pytest collected no tests"; exit 0; fi
+# a module at a time on MIDVIEW_TEST_WORKERS processes (2: the cores of the usual machine; the tests run
+# their pipelines on one thread each, so two modules share the machine), the end-to-end modules first
+# (tests/conftest.py); then the tests that assert a latency (marker `alone`), with nothing beside them.
+# --durations: the 25 slowest tests, where the suite's time goes. Arguments: one pass with them instead.
+pytest_run() {
+  set +e
+  "$VENV/bin/python" -m pytest -ra --durations=25 "$@"
+  local rc=$?
+  set -e
+  if [ $rc -eq 5 ]; then rc=0; fi  # no test collected (a filter that selects none)
+  return $rc
+}
+parallel=(-n "${MIDVIEW_TEST_WORKERS:-2}" --dist loadfile --no-loadscope-reorder)
+if [ $# -gt 0 ]; then
+  pytest_run "${parallel[@]}" "$@"
+  exit $?
+fi
+rc=0
+pytest_run "${parallel[@]}" -m "not alone" || rc=$?
+pytest_run -m alone || rc=$?
 exit $rc

@@ -386,3 +386,11 @@ def wait_for_job(client, headers, job_id, timeout_s, seen=None):
         if time.monotonic() > deadline:
             raise AssertionError(f"job {job_id} not finished after {timeout_s} s: {job}")
         time.sleep(0.5)
+
+
+def pytest_collection_modifyitems(config, items):
+    """The modules with a slow test first, the others after them, each in its own order: scripts/test.sh
+    runs the suite on pytest-xdist workers a module at a time (--dist loadfile --no-loadscope-reorder), so
+    every worker starts on one of the end-to-end modules and the quick ones fill in around them."""
+    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow)

@@ -215,15 +215,23 @@ def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     finally:
         probe.close()
     if running:
+        # claimed with a key only the first claimer sets (SET NX) in a db that held nothing else: several
+        # pytest processes (pytest-xdist workers, two suites) never share a db
         dbs = list(range(1, 16))
         random.shuffle(dbs)
+        claim = f"midview-test-claim:{uuid.uuid4().hex}"
         for db in dbs:
             r = redis.Redis(host=REDIS_HOST, port=REDIS_PORT, db=db)
             try:
-                if r.dbsize() == 0:
-                    yield f"redis://{REDIS_HOST}:{REDIS_PORT}/{db}"
-                    r.flushdb()
-                    return
+                if r.dbsize() != 0 or not r.set("midview-test-claim", claim, nx=True):
+                    continue
+                if r.dbsize() != 1:  # something else was written there meanwhile: leave it alone
+                    if r.get("midview-test-claim") == claim.encode():
+                        r.delete("midview-test-claim")
+                    continue
+                yield f"redis://{REDIS_HOST}:{REDIS_PORT}/{db}"
+                r.flushdb()
+                return
             finally:
                 r.close()
         pytest.skip(f"Redis at {REDIS_HOST}:{REDIS_PORT} has no empty database among 1-15")

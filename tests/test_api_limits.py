@@ -13,6 +13,9 @@ import pytest
 
 from api.middleware import BodyLimitMiddleware, route_limits
 
+# "answered at once": each test bounds a reply's time (1-5 s); run with nothing beside them (scripts/test.sh)
+pytestmark = pytest.mark.alone
+
 
 def _run(app, scope: dict, messages: list[dict] | None = None, hang: bool = False) -> list[dict]:
     """Drive an ASGI app with `messages` as the request body (or a client that never sends it)."""

@@ -136,6 +136,7 @@ def test_resume_gives_the_same_result(tiny, tmp_path):
         assert torch.equal(sa["exp_avg"], sc["exp_avg"]) and torch.equal(sa["exp_avg_sq"], sc["exp_avg_sq"])
 
 
+@pytest.mark.alone  # the run's length in seconds
 def test_time_budget_cuts_the_run_and_decays_the_learning_rate_over_it(tiny, tmp_path, caplog):
     """With time_budget_s the run ends within the budget (checked every budget_every steps at the pace of
     the last ones), at the means' final learning rate; the checkpoint keeps the cut length and the time.
