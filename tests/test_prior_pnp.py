@@ -9,9 +9,16 @@ import cv2
 import numpy as np
 
 from services import reduce as transfer
-from services.colmap_model import Camera
+from services.colmap_model import Camera, Pose
 from services.geometry import look_at
-from services.reduce.prior_pnp import prior_gated_pnp, reprojection_errors
+from services.reduce.prior_pnp import (
+    distinct_triples,
+    inlier_counts,
+    p3p_many,
+    prior_gated_pnp,
+    reprojection_errors,
+    rotations,
+)
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
 TRUE = look_at(np.array([0.0, 0.0, 1.6]), np.array([0.0, 20.0, 4.0]))
@@ -38,8 +45,11 @@ def test_gated_ransac_finds_the_pose_the_prior_allows():
     kp, X, n_true = _correspondences()
     pc = transfer.default_conf["pnp"]
 
-    def gate(p):
-        return not transfer.prior_agreement(p, TRUE, STD, pc)[2]
+    def gate(R, t):  # one pose at a time, through the report's own check
+        return np.array(
+            [not transfer.prior_agreement(Pose(r, v), TRUE, STD, pc)[2] for r, v in zip(R, t, strict=True)],
+            bool,
+        )
 
     pose, inl = prior_gated_pnp(kp, X, CAM.K, gate, threshold_px=6.0)
     assert pose is not None
@@ -50,7 +60,7 @@ def test_gated_ransac_finds_the_pose_the_prior_allows():
     pose2, inl2 = prior_gated_pnp(kp, X, CAM.K, gate, threshold_px=6.0)
     assert np.array_equal(inl, inl2) and np.allclose(pose.t, pose2.t)
     # nothing the gate allows: no pose
-    assert prior_gated_pnp(kp, X, CAM.K, lambda p: False)[0] is None
+    assert prior_gated_pnp(kp, X, CAM.K, lambda R, t: np.zeros(len(R), bool))[0] is None
     assert prior_gated_pnp(kp[:3], X[:3], CAM.K, gate)[0] is None
 
 
@@ -90,7 +100,6 @@ def test_depth_is_trusted_per_view_or_by_the_renderer():
 def test_prior_gate_agrees_with_prior_agreement():
     """The RANSAC's fast gate (position first) passes exactly the poses prior_agreement finds no
     reason against, near and far from the prior, with the chi-square check on and off."""
-    from services.colmap_model import Pose
     from services.reduce.localize import PriorGate, prior_agreement
 
     rng = np.random.default_rng(1)
@@ -107,3 +116,38 @@ def test_prior_gate_agrees_with_prior_agreement():
             verdicts.append(gate.gate(pose))
             assert verdicts[-1] == (not prior_agreement(pose, TRUE, STD, pc)[2])
         assert 0 < sum(verdicts) < len(verdicts)  # both verdicts were tested
+
+
+def test_the_batched_pieces_agree_with_one_pose_at_a_time():
+    """The gated RANSAC's batches: distinct uniform samples, Rodrigues' formula, the P3P poses and their
+    inlier counts as cv2 and reprojection_errors give them one at a time."""
+    rng = np.random.default_rng(3)
+    s = distinct_triples(rng, 7, 70000)
+    assert ((s[:, 0] != s[:, 1]) & (s[:, 0] != s[:, 2]) & (s[:, 1] != s[:, 2])).all()
+    assert s.min() == 0 and s.max() == 6
+    counts = np.bincount(s.ravel(), minlength=7) / s.size
+    assert np.abs(counts - 1 / 7).max() < 0.01
+    tri = np.sort(s, 1) @ np.array([49, 7, 1])  # each of the 35 unordered triples about as often
+    freq = np.unique(tri, return_counts=True)[1]
+    assert len(freq) == 35 and freq.min() > 0.85 * freq.mean()
+
+    w = rng.normal(0.0, 1.0, (50, 3))
+    w[0] = 0.0
+    assert np.allclose(rotations(w), [cv2.Rodrigues(v)[0] for v in w], atol=1e-12)
+
+    kp, X, n_true = _correspondences(seed=4)
+    xn = (kp - CAM.K[:2, 2]) / np.diag(CAM.K)[:2]
+    samples = distinct_triples(rng, len(kp), 40)
+    R, t, rows = p3p_many(xn, X, samples)
+    assert len(R) >= 40 and (np.diff(rows) >= 0).all()
+    for r, v, i in zip(R, t, rows, strict=True):
+        cnt, rv, tv = cv2.solveP3P(X[samples[i]], xn[samples[i]], np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
+        assert any(
+            np.allclose(r, cv2.Rodrigues(a)[0]) and np.allclose(v, b.ravel())
+            for a, b in zip(rv[:cnt], tv[:cnt], strict=True)
+        )
+    counts = inlier_counts(R, t, CAM.K, kp, X, 6.0)
+    assert counts.tolist() == [
+        int((reprojection_errors(Pose(r, v), CAM.K, kp, X) <= 6.0).sum()) for r, v in zip(R, t, strict=True)
+    ]
+    assert counts.max() >= n_true  # a sample of the wrong facade's points, or the true

@@ -89,13 +89,20 @@ class PoseEstimate:
         return {**d, **self.extra}
 
 
-def prior_chi2(dxy: float, dz: float, drot: float, std: tuple[float, float, float], pc: dict) -> float:
-    """Squared normalized difference of a pose to its POS: horizontal (m), vertical (m) and rotation
-    (deg) over their standard deviations, each at least its floor (min_position_m etc.) / prior_sigmas."""
+def _chi2_sigmas(std: tuple[float, float, float], pc: dict) -> tuple[float, float, float]:
+    """The standard deviations of prior_chi2: horizontal (m), vertical (m), rotation (deg), each at least
+    its floor (min_position_m etc.) / prior_sigmas."""
     k = pc["prior_sigmas"]
     sxy = max(std[0], pc["min_position_m"] / (k * math.sqrt(2.0)))
     sz = max(std[1], pc["min_height_m"] / k)
     satt = max(std[2], pc["min_rotation_deg"] / (k * math.sqrt(3.0)))
+    return sxy, sz, satt
+
+
+def prior_chi2(dxy: float, dz: float, drot: float, std: tuple[float, float, float], pc: dict) -> float:
+    """Squared normalized difference of a pose to its POS: horizontal (m), vertical (m) and rotation
+    (deg) over their standard deviations (_chi2_sigmas)."""
+    sxy, sz, satt = _chi2_sigmas(std, pc)
     return float((dxy / sxy) ** 2 + (dz / sz) ** 2 + (drot / satt) ** 2)
 
 
@@ -133,13 +140,19 @@ class PriorGate:
         return dxy, dz, drot, prior_chi2(dxy, dz, drot, self.std, self.pc)
 
     def gate(self, pose: Pose) -> bool:
-        """Whether the pose agrees with the prior (no reason of `reasons`); the position first."""
+        """Whether the pose agrees with the prior (no reason of `reasons`)."""
+        return bool(self.agree(pose.R[None], pose.t[None])[0])
+
+    def agree(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """gate() of many poses at once: R (P, 3, 3) and t (P, 3) cam_from_world -> (P,) bool."""
         lim_xy, lim_z, lim_rot = self.limits.values()
-        dxy, dz = self._position(pose)
-        if dxy > lim_xy or dz > lim_z:
-            return False
-        drot = self._rotation(pose)
-        return drot <= lim_rot and prior_chi2(dxy, dz, drot, self.std, self.pc) <= self._chi2_max
+        d = -np.einsum("pji,pj->pi", R, t) - self.center  # camera centres less the prior's
+        dxy, dz = np.hypot(d[:, 0], d[:, 1]), np.abs(d[:, 2])
+        cos = (np.einsum("pij,ij->p", R, self.R) - 1.0) / 2.0
+        drot = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        sxy, sz, satt = _chi2_sigmas(self.std, self.pc)
+        chi2 = (dxy / sxy) ** 2 + (dz / sz) ** 2 + (drot / satt) ** 2
+        return (dxy <= lim_xy) & (dz <= lim_z) & (drot <= lim_rot) & (chi2 <= self._chi2_max)
 
     def reasons(self, dxy: float, dz: float, drot: float, chi2: float) -> list[str]:
         """Why differences disagree with the prior (none: they agree)."""
@@ -195,7 +208,7 @@ def _solve_pnp(
     gate = PriorGate(prior, prior_std, pc) if prior is not None else None
     disagrees = pose is None or (gate is not None and not gate.gate(pose))
     if gate is not None and pc["prior_gated"] and disagrees:
-        gated, _ = prior_gated_pnp(kp, X, camera.K, gate.gate, pc["ransac_px"], seed=int(pc["seed"]))
+        gated, _ = prior_gated_pnp(kp, X, camera.K, gate.agree, pc["ransac_px"], seed=int(pc["seed"]))
         if gated is not None:
             return gated, "prior-gated"
     return pose, "pycolmap"
