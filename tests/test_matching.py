@@ -188,6 +188,31 @@ def test_nn_ratio_mutual():
     assert len(m) == 0
 
 
+def test_nn_ratio_is_the_brute_force_mutual_ratio_match():
+    """Chunked, with the columns' best values: the matches of the whole similarity matrix (rows' two
+    nearest, Lowe's ratio, each row the nearest of its nearest), for noisy many-to-many descriptors."""
+    rng = np.random.default_rng(1)
+    d0 = rng.normal(size=(300, 32)).astype(np.float32)
+    d1 = np.concatenate([d0[rng.permutation(300)[:200]], rng.normal(size=(150, 32))]).astype(np.float32)
+    d1 += 0.7 * rng.normal(size=d1.shape).astype(np.float32)
+    d0 /= np.linalg.norm(d0, axis=1, keepdims=True)
+    d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
+    sim = d0.astype(np.float64) @ d1.T.astype(np.float64)
+    order = np.argsort(-sim, axis=1)
+    nn, second = order[:, 0], order[:, 1]
+    dist = lambda j: np.maximum(2 - 2 * sim[np.arange(300), j], 0)  # noqa: E731
+    ratio_ok = dist(nn) <= 0.8**2 * dist(second)
+    mutual = sim.argmax(0)[nn] == np.arange(300)
+    want = np.flatnonzero(ratio_ok & mutual)
+    for chunk in (7, 64, 2048):
+        m, s = direct.match_nn_ratio(d0, d1, 0.8, True, chunk=chunk)
+        assert m[:, 0].tolist() == want.tolist() and (m[:, 1] == nn[want]).all()
+        assert np.allclose(s, (sim[want, nn[want]] + 1) / 2, atol=1e-5)
+    assert 20 < len(want) < 250  # both verdicts tested
+    m, _ = direct.match_nn_ratio(d0, d1, 0.8, False)
+    assert m[:, 0].tolist() == np.flatnonzero(ratio_ok).tolist()
+
+
 def test_ransac_needs_eight_matches():
     kp = np.random.default_rng(0).uniform(0, 100, (7, 2)).astype(np.float32)
     m = np.stack([np.arange(7), np.arange(7)], 1)

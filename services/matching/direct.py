@@ -59,7 +59,6 @@ def match_nn_ratio(
     best = torch.empty(len(d0))
     keep = torch.empty(len(d0), dtype=torch.bool)
     col_best = torch.full((len(d1),), -2.0)
-    col_arg = torch.zeros(len(d1), dtype=torch.long)
     with torch.inference_mode():
         for i in range(0, len(d0), chunk):  # chunks: no (N0, N1) matrix for 8k x 8k SIFT
             sim = d0[i : i + chunk] @ d1.T
@@ -68,13 +67,14 @@ def match_nn_ratio(
             nn01[i : i + chunk] = idx[:, 0]
             best[i : i + chunk] = top[:, 0]
             keep[i : i + chunk] = dist[:, 0] <= ratio**2 * dist[:, 1]
-            cmax, carg = sim.max(dim=0)
-            better = cmax > col_best
-            col_best = torch.where(better, cmax, col_best)
-            col_arg = torch.where(better, carg + i, col_arg)
-        if mutual:
-            keep &= col_arg[nn01] == torch.arange(len(d0))
+            # the columns' best values only (amax, ~20x faster on the CPU than max with its indices)
+            col_best = torch.maximum(col_best, sim.amax(dim=0))
+        if mutual:  # i's nearest neighbour j has i as its own: i reaches j's column best
+            keep &= best >= col_best[nn01]
     i0 = torch.nonzero(keep).squeeze(1)
+    if mutual and len(i0):  # a tie in a column: its first row only, one match per column
+        _, first = np.unique(nn01[i0].numpy(), return_index=True)
+        i0 = i0[torch.from_numpy(np.sort(first))]
     matches = torch.stack([i0, nn01[i0]], 1).numpy().astype(np.int32)
     scores = ((best[i0] + 1.0) / 2.0).numpy().astype(np.float32)
     return matches, scores
