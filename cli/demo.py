@@ -178,13 +178,12 @@ def _baselines_process(
 
     t0 = time.perf_counter()
     # midview's features first: the demo hands them to the job (BaselinesBeside.share_features)
-    features_mod.main(
-        aliked_features,
-        Path(scene) / "images",
-        list_images(Path(scene) / "images"),
-        out / "features" / f"{aliked_features['output']}.h5",
-    )
+    features = out / "features" / f"{aliked_features['output']}.h5"
+    features_mod.main(aliked_features, Path(scene) / "images", list_images(Path(scene) / "images"), features)
     (out / "features" / "shared.done").touch()
+    ahead = (
+        job_dir is not None and (out / AERIAL_READY).exists() and _match_ground_pairs_ahead(job_dir, features)
+    )
     found = direct_baselines(Path(scene), out, aliked_features, sift_conf)
     result: dict = {
         "found": {k: [str(p), c] for k, (p, c) in found.items()},
@@ -194,6 +193,8 @@ def _baselines_process(
         from services.pipeline import Job
 
         t1 = time.perf_counter()
+        if not ahead:
+            _match_ground_pairs_ahead(job_dir, features)
         job, sfm = Job.load(job_dir), {}
         for label, found_one in found.items():  # the cores the pipeline has left, one baseline at a time
             if (out / PIPELINE_DONE).exists() and torch.get_num_threads() != (os.cpu_count() or 1):
@@ -333,6 +334,23 @@ def synthesize(out: Path, preset: str, seed: int, textures: Path | None, supersa
             overwrite=True,
         )
     return scene
+
+
+def _match_ground_pairs_ahead(job_dir: str, features: Path) -> bool:
+    """In the child: the job's combined SfM's ground pairs matched into its pair cache from the child's
+    copy of midview's features (the job's feature file, written by its stages, is not opened), so that
+    the pipeline's combined SfM and the ALIKED+LightGlue baseline's read them. False if the features'
+    conf is not the job's."""
+    from services.pipeline import Job
+    from services.pipeline.stages import match_ground_pairs_ahead
+
+    job = Job.load(job_dir)
+    if job.features_path.name != features.name:
+        return False
+    t0 = time.perf_counter()
+    n = match_ground_pairs_ahead(job, features)
+    logger.info("the combined SfM's %d ground pairs matched ahead in %.1f s", n, time.perf_counter() - t0)
+    return True
 
 
 def _run_pipeline(job, run_job: Callable, child, deadline: tuple[float, float] | None, console) -> dict:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import pytest
 
@@ -141,6 +142,33 @@ def test_localized_ground_images_survive_a_mapper_that_makes_no_model(tiny_job, 
     assert {g for g, d in rep["ground"].items() if d["registered"]} == accepted
     assert all(rep["ground"][g]["registered_by"] == "pnp" for g in accepted)
     assert pycolmap.Reconstruction(str(out)).num_reg_images() == 20 + len(accepted)
+
+
+def test_ground_pairs_matched_ahead_are_not_matched_again(tiny_job, tmp_path, monkeypatch):
+    """The demo's baselines' process matches the combined SfM's ground pairs ahead, from its own copy of
+    the features, into the job's pair cache: the combined SfM then matches none of them again."""
+    import shutil
+
+    from services import matching
+    from services.sfm.combined.pair_cache import pair_cache_path
+
+    job, _, _ = tiny_job
+    copy = shutil.copy2(job.features_path, tmp_path / job.features_path.name)
+    cache = pair_cache_path(job.features_path, job.match_conf()["matcher"])
+    kept = cache.rename(tmp_path / "kept.h5") if cache.exists() else None  # the combined stage's own
+    try:
+        n = pipeline.stages.match_ground_pairs_ahead(job, Path(copy))
+        assert n > 0 and cache.is_file()
+        calls = []
+        real = matching.match_features
+        monkeypatch.setattr(matching, "match_features", lambda *a: calls.append(a[2]) or real(*a))
+        pipeline.combined_reconstruction(job, tmp_path / "combined")
+        rep = json.loads((tmp_path / "combined" / "report.json").read_text())
+        assert calls == [] and len(rep["ground_pairs"]) == n
+    finally:
+        cache.unlink(missing_ok=True)
+        if kept is not None:
+            kept.rename(cache)
 
 
 def test_localized_ground_images_the_mapper_leaves_uncertain_are_kept_at_their_pnp_pose(tiny_job, tmp_path):

@@ -372,6 +372,18 @@ def combined_reconstruction(job: Job, out_dir: Path, report=None) -> Path:
     )
 
 
+def match_ground_pairs_ahead(job: Job, feature_path: Path) -> int:
+    """The combined SfM's ground-ground pairs matched ahead into the job's pair cache (beside its
+    features), from `feature_path`: a copy of the job's features that no stage writes (the demo's
+    baselines' process, beside the pipeline). The number of pairs cached."""
+    from services.sfm.combined.database import match_ground_pairs_ahead as ahead
+    from services.sfm.combined.pair_cache import pair_cache_path
+
+    mc = job.match_conf()
+    cache = pair_cache_path(job.features_path, mc["matcher"])
+    return ahead(job.sfm.dir, job.image_dir, feature_path, job.pos, mc, job.combined_conf(), cache)
+
+
 def run_combined_sfm(job: Job, report) -> dict:
     combined_reconstruction(job, job.combined.dir, report)
     rep = json.loads((job.combined.report).read_text())

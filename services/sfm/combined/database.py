@@ -467,6 +467,35 @@ def _ground_names(transfer_matches: Path) -> set[str]:
         return {n for n in mf.image_names() if n.startswith("ground/")}
 
 
+def match_ground_pairs_ahead(
+    aerial_dir: Path,
+    image_dir: Path,
+    feature_path: Path,
+    pos: str | Path,
+    match_conf: dict,
+    conf: dict,
+    cache: Path,
+) -> int:
+    """The ground-ground pairs build_database matches (the POS's neighbours), matched ahead of it into the
+    pair cache `cache` from the features in `feature_path` (only read: a pair of an image it lacks is
+    left to build_database). The demo's baselines' process does this beside the pipeline. Returns the
+    number of pairs the cache holds for these features."""
+    from services import matching
+    from services.reduce import ground_priors
+    from services.sfm.combined.pair_cache import match_ground_pairs
+
+    priors, _ = ground_priors(pos, aerial_dir / "georef.json")
+    feats = {}
+    for n in sorted(n for n in priors if (image_dir / n).is_file()):
+        try:
+            feats[n] = matching.load_features(feature_path, n)
+        except (KeyError, OSError):
+            continue
+    pairs = ground_pairs(priors, sorted(feats), conf["ground_pairs"])
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    return len(match_ground_pairs(feats, pairs, match_conf["matcher"], cache))
+
+
 def build_database(
     aerial_dir: Path,
     transfer_dir: Path,
