@@ -11,7 +11,7 @@ import pytest
 from services.colmap_model import Camera, Pose
 from services.geometry import look_at
 from services.sfm import combined as combined_sfm
-from services.sfm.combined.ambiguity import ambiguous_images, competing_poses, default_conf
+from services.sfm.combined.ambiguity import ambiguous_images, competing_poses, default_conf, hanging_images
 
 CAM = Camera("PINHOLE", 1024, 768, [750.0, 750.0, 512.0, 384.0])
 WINDOW = np.array([1.5, 0.0, 0.0])  # the facade repeats every 1.5 m along the street (x)
@@ -97,3 +97,40 @@ def test_ambiguous_images_reads_the_verified_matches_through_the_models_points(t
         found = ambiguous_images(rec, [c], str(root / "database.db"), default_conf)
         assert (c in found) is expected
         assert ambiguous_images(rec, [c], str(root / "database.db"), {**default_conf, "enabled": False}) == {}
+
+
+def test_an_image_all_of_whose_points_one_other_image_sees_hangs_on_it():
+    """Three ground cameras along a facade: the third's points all seen by the second (one pair) hangs on
+    it; with a tenth of its points the first's and not the second's it has two supports and does not; an
+    aerial image seeing the points is no ground support."""
+    poses = [look_at(np.array([4.0 * i, 0.0, 1.6]), np.array([4.0 * i, 10.0, 3.0])) for i in range(3)]
+    P = _facade(400, 2)
+    P = P[_visible(poses[1], P) & _visible(poses[2], P) & _visible(poses[0], P)][:100]
+    assert len(P) == 100
+
+    def model(own: int) -> pycolmap.Reconstruction:
+        """Images 1-3 (ground) and 4 (aerial); image 3's first `own` points seen by image 1, not 2."""
+        rec = pycolmap.Reconstruction()
+        rec.add_camera_with_trivial_rig(CAM.to_pycolmap(1))
+        names = ["ground/G0.jpg", "ground/G1.jpg", "ground/G2.jpg", "aerial/A0.jpg"]
+        for i, name in enumerate(names, 1):
+            pose = (
+                poses[i - 1] if i <= 3 else look_at(np.array([4.0, -20.0, 30.0]), np.array([4.0, 10.0, 3.0]))
+            )
+            kp = pose.project(CAM.K, P)[0]
+            im = pycolmap.Image(name=name, keypoints=kp, camera_id=1, image_id=i)
+            rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t))
+        for k in range(len(P)):
+            partner = 1 if k < own else 2
+            elements = [
+                pycolmap.TrackElement(3, k),
+                pycolmap.TrackElement(partner, k),
+                pycolmap.TrackElement(4, k),
+            ]
+            rec.add_point3D(P[k], pycolmap.Track(elements), np.zeros(3, np.uint8))
+        return rec
+
+    hung = hanging_images(model(0), [3], 0.95)
+    assert list(hung) == [3] and "hangs on ground/G1.jpg: 100 of its 100 points" in hung[3]
+    assert hanging_images(model(3), [3], 0.95) != {}  # 97 of 100: still one pair's
+    assert hanging_images(model(10), [3], 0.95) == {}  # 90 of 100 with G1, 10 with G0: checked

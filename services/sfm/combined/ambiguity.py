@@ -31,6 +31,9 @@ default_conf: dict[str, Any] = {
     "min_separation_m": 0.5,
     "max_error_px": 8.0,  # the inlier threshold (the mapper's abs_pose_max_error)
     "seed": 0,
+    # an image at least this share of whose points one other ground image observes hangs on that image
+    # (hanging_images): its pose is that one pair's, unchecked. None: not judged
+    "hanging_min_share": 0.95,
 }
 
 
@@ -153,4 +156,30 @@ def ambiguous_images(
         if hyp.ambiguous(conf):
             out[i] = hyp
     logger.info("two poses (best inliers / second's, apart): %s", "; ".join(seen))
+    return out
+
+
+def hanging_images(rec: pycolmap.Reconstruction, image_ids: list[int], min_share: float) -> dict[int, str]:
+    """The images of `image_ids` nearly all of whose 3D points (at least `min_share`) one other ground
+    image also observes: their pose rests on that one pair's matches, which nothing else checks (on the
+    demo's `isprs` G0020 registered 3.28 m off, every one of its 62 points G0017's, through a pair of a
+    repeated facade). {image_id: reason}."""
+    names = {im.image_id: im.name for im in rec.images.values() if im.has_pose}
+    out = {}
+    for image_id in image_ids:
+        im = rec.images[image_id]
+        points = [p.point3D_id for p in im.points2D if p.has_point3D()]
+        shared: dict[int, int] = {}
+        for pid in set(points):
+            for other in {e.image_id for e in rec.points3D[pid].track.elements} - {image_id}:
+                if names.get(other, "").startswith("ground/"):
+                    shared[other] = shared.get(other, 0) + 1
+        if not points or not shared:
+            continue
+        top, n = max(shared.items(), key=lambda kv: (kv[1], -kv[0]))
+        if n >= min_share * len(set(points)):
+            out[image_id] = (
+                f"hangs on {names[top]}: {n} of its {len(set(points))} points are that image's too, a pair"
+                " nothing else checks"
+            )
     return out

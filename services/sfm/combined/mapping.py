@@ -40,7 +40,9 @@ def drop_ill_determined(
     PnP pose) whose pose disagrees with their POS (with `priors` and `pnp_conf`, the reducer's POS
     limits, services.reduce: a repeated facade can register an image far from where it was taken), whose
     verified matches (`db_path`'s) fit two poses alike (with `ambiguity`, services.sfm.combined.ambiguity:
-    half of a pair's matches a window along the street), or whose centre the model determines worse than
+    half of a pair's matches a window along the street), whose points nearly all one other ground image
+    observes (`ambiguity`'s hanging_min_share: the pose of one unchecked pair), or whose centre the model
+    determines worse than
     `max_std` metres: the standard deviation along the worst direction from the covariance of the model's
     bundle adjustment with the other images held (services.pose_uncertainty.joint_position_stds), so a
     run of ground images tied by their own points but placed by a few ill-spread aerial points is judged
@@ -74,6 +76,16 @@ def drop_ill_determined(
             im = rec.images[image_id]
             rec.deregister_frame(im.frame_id)
             out[im.name] = hyp.reason()
+    while ambiguity and ambiguity.get("hanging_min_share"):  # dropping one can leave another hanging
+        from services.sfm.combined.ambiguity import hanging_images
+
+        hanging = hanging_images(rec, [im.image_id for im in candidates()], ambiguity["hanging_min_share"])
+        for image_id, why in hanging.items():
+            im = rec.images[image_id]
+            rec.deregister_frame(im.frame_id)
+            out[im.name] = why
+        if not hanging:
+            break
     while max_std:
         ims = candidates()
         stds = joint_position_stds(rec, [im.image_id for im in ims]) if ims else {}
