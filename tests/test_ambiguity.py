@@ -101,8 +101,8 @@ def test_ambiguous_images_reads_the_verified_matches_through_the_models_points(t
 
 def test_an_image_all_of_whose_points_one_other_image_sees_hangs_on_it():
     """Three ground cameras along a facade: the third's points all seen by the second (one pair) hangs on
-    it; with a tenth of its points the first's and not the second's it has two supports and does not; an
-    aerial image seeing the points is no ground support."""
+    it, unless a verified pair with the first checks them; with a tenth of its points the first's and not
+    the second's it does not; an aerial image seeing the points is no ground support."""
     poses = [look_at(np.array([4.0 * i, 0.0, 1.6]), np.array([4.0 * i, 10.0, 3.0])) for i in range(3)]
     P = _facade(400, 2)
     P = P[_visible(poses[1], P) & _visible(poses[2], P) & _visible(poses[0], P)][:100]
@@ -132,5 +132,9 @@ def test_an_image_all_of_whose_points_one_other_image_sees_hangs_on_it():
 
     hung = hanging_images(model(0), [3], 0.95)
     assert list(hung) == [3] and "hangs on ground/G1.jpg: 100 of its 100 points" in hung[3]
+    # its points all G1's too, but its pair with G0 checks them (a walk's next-but-one neighbour)
+    walk = {"ground/G2.jpg": {"ground/G1.jpg", "ground/G0.jpg"}}
+    assert hanging_images(model(0), [3], 0.95, walk) == {}
+    assert list(hanging_images(model(0), [3], 0.95, {"ground/G2.jpg": {"ground/G1.jpg"}})) == [3]
     assert hanging_images(model(3), [3], 0.95) != {}  # 97 of 100: still one pair's
     assert hanging_images(model(10), [3], 0.95) == {}  # 90 of 100 with G1, 10 with G0: checked

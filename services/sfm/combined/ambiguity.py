@@ -159,27 +159,38 @@ def ambiguous_images(
     return out
 
 
-def hanging_images(rec: pycolmap.Reconstruction, image_ids: list[int], min_share: float) -> dict[int, str]:
+def hanging_images(
+    rec: pycolmap.Reconstruction,
+    image_ids: list[int],
+    min_share: float,
+    partners: dict[str, set[str]] | None = None,
+) -> dict[int, str]:
     """The images of `image_ids` nearly all of whose 3D points (at least `min_share`) one other ground
-    image also observes: their pose rests on that one pair's matches, which nothing else checks (on the
-    demo's `isprs` G0020 registered 3.28 m off, every one of its 62 points G0017's, through a pair of a
-    repeated facade). {image_id: reason}."""
+    image also observes, and (with `partners`: each image's verified ground pairs) with no verified pair to
+    another registered ground image: their pose rests on that one pair's matches, which nothing else
+    checks (on the demo's `isprs` G0020 registered 3.28 m off, every one of its 62 points G0017's, its
+    one pair a repeated facade). On a walk an image's points are mostly its next neighbour's too, but its
+    pairs with the neighbours beyond check them. {image_id: reason}."""
     names = {im.image_id: im.name for im in rec.images.values() if im.has_pose}
     out = {}
     for image_id in image_ids:
         im = rec.images[image_id]
-        points = [p.point3D_id for p in im.points2D if p.has_point3D()]
+        if partners is not None:
+            registered = {n for n in partners.get(im.name, set()) if n in names.values()}
+            if len(registered) > 1:
+                continue
+        points = {p.point3D_id for p in im.points2D if p.has_point3D()}
         shared: dict[int, int] = {}
-        for pid in set(points):
+        for pid in points:
             for other in {e.image_id for e in rec.points3D[pid].track.elements} - {image_id}:
                 if names.get(other, "").startswith("ground/"):
                     shared[other] = shared.get(other, 0) + 1
         if not points or not shared:
             continue
         top, n = max(shared.items(), key=lambda kv: (kv[1], -kv[0]))
-        if n >= min_share * len(set(points)):
+        if n >= min_share * len(points):
             out[image_id] = (
-                f"hangs on {names[top]}: {n} of its {len(set(points))} points are that image's too, a pair"
+                f"hangs on {names[top]}: {n} of its {len(points)} points are that image's too, a pair"
                 " nothing else checks"
             )
     return out

@@ -35,14 +35,15 @@ def drop_ill_determined(
     pnp_conf: dict | None = None,
     db_path: Path | None = None,
     ambiguity: dict | None = None,
+    partners: dict[str, set[str]] | None = None,
 ) -> dict[str, str]:
     """Deregister the ground images the mapper registered (not those of `fixed`, held at the reducer's
     PnP pose) whose pose disagrees with their POS (with `priors` and `pnp_conf`, the reducer's POS
     limits, services.reduce: a repeated facade can register an image far from where it was taken), whose
     verified matches (`db_path`'s) fit two poses alike (with `ambiguity`, services.sfm.combined.ambiguity:
     half of a pair's matches a window along the street), whose points nearly all one other ground image
-    observes (`ambiguity`'s hanging_min_share: the pose of one unchecked pair), or whose centre the model
-    determines worse than
+    observes with no other verified pair (`partners`) to a registered image (`ambiguity`'s
+    hanging_min_share: the pose of one unchecked pair), or whose centre the model determines worse than
     `max_std` metres: the standard deviation along the worst direction from the covariance of the model's
     bundle adjustment with the other images held (services.pose_uncertainty.joint_position_stds), so a
     run of ground images tied by their own points but placed by a few ill-spread aerial points is judged
@@ -79,7 +80,8 @@ def drop_ill_determined(
     while ambiguity and ambiguity.get("hanging_min_share"):  # dropping one can leave another hanging
         from services.sfm.combined.ambiguity import hanging_images
 
-        hanging = hanging_images(rec, [im.image_id for im in candidates()], ambiguity["hanging_min_share"])
+        ids = [im.image_id for im in candidates()]
+        hanging = hanging_images(rec, ids, ambiguity["hanging_min_share"], partners)
         for image_id, why in hanging.items():
             im = rec.images[image_id]
             rec.deregister_frame(im.frame_id)
@@ -327,8 +329,17 @@ def settle_ground(
             )
     held = registered_ground(seed)
     max_std = conf["max_position_std_m"]
+    partners: dict[str, set[str]] = {}  # each ground image's verified ground pairs
+    for key, pair in cdb.ground_pairs.items():
+        # "g0 g1": split where both sides are image names (a name may hold a space)
+        split = [(key[:i], key[i + 1 :]) for i, c in enumerate(key) if c == " "]
+        named = [(a, b) for a, b in split if a in cdb.ids and b in cdb.ids]
+        if pair.get("accepted") and named:
+            g0, g1 = named[0]
+            partners.setdefault(g0, set()).add(g1)
+            partners.setdefault(g1, set()).add(g0)
     dropped = drop_ill_determined(
-        rec, held, max_std, cdb.priors, cdb.prior_std, pos_limits, cdb.path, conf["ambiguity"]
+        rec, held, max_std, cdb.priors, cdb.prior_std, pos_limits, cdb.path, conf["ambiguity"], partners
     )
     refined = {g: m for g, m in refined.items() if g not in dropped}
     if dropped:
