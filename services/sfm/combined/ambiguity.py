@@ -172,12 +172,12 @@ def hanging_images(
     one pair a repeated facade). On a walk an image's points are mostly its next neighbour's too, but its
     pairs with the neighbours beyond check them. {image_id: reason}."""
     names = {im.image_id: im.name for im in rec.images.values() if im.has_pose}
+    posed = set(names.values())
     out = {}
     for image_id in image_ids:
         im = rec.images[image_id]
         if partners is not None:
-            registered = {n for n in partners.get(im.name, set()) if n in names.values()}
-            if len(registered) > 1:
+            if len(partners.get(im.name, set()) & posed) > 1:
                 continue
         points = {p.point3D_id for p in im.points2D if p.has_point3D()}
         shared: dict[int, int] = {}

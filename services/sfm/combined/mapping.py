@@ -77,9 +77,9 @@ def drop_ill_determined(
             im = rec.images[image_id]
             rec.deregister_frame(im.frame_id)
             out[im.name] = hyp.reason()
-    while ambiguity and ambiguity.get("hanging_min_share"):  # dropping one can leave another hanging
-        from services.sfm.combined.ambiguity import hanging_images
+    from services.sfm.combined.ambiguity import hanging_images
 
+    while ambiguity and ambiguity.get("hanging_min_share"):  # dropping one can leave another hanging
         ids = [im.image_id for im in candidates()]
         hanging = hanging_images(rec, ids, ambiguity["hanging_min_share"], partners)
         for image_id, why in hanging.items():
